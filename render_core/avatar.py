@@ -1,0 +1,201 @@
+"""The Gaussian blendshape avatar (METHOD.md sections 1 and 11).
+
+An :class:`Avatar` holds the neutral Gaussians B0, K expression deltas dB_k for all five properties, per-Gaussian
+LBS weights over a named joint tree, optional pose correctives and eyelid offsets, and the mouth-interior Gaussians
+(upper group bound to the skull's joint, lower group to the jaw). Tensors may be stored in fp16; every compute
+path casts to float32.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields, replace
+from typing import Any, Literal
+
+import torch
+from torch import Tensor
+
+from .errors import ShapeError
+
+RasterMode = Literal["classic", "antialiased"]
+RASTER_MODES: tuple[str, ...] = ("classic", "antialiased")
+
+# FLAME's joints (METHOD.md section 11) and the open head's.
+FLAME_JOINTS: tuple[str, ...] = ("root", "neck", "jaw", "eye_l", "eye_r")
+FLAME_PARENTS: tuple[int, ...] = (-1, 0, 1, 1, 1)
+FLAME_MOUTH_JOINTS: tuple[str, str] = ("neck", "jaw")
+
+
+def sh_coeff_count(degree: int) -> int:
+    """Number of SH coefficients per channel for an SH degree (0..3)."""
+    if degree not in (0, 1, 2, 3):
+        raise ValueError(f"SH degree must be 0..3, got {degree}")
+    return (degree + 1) ** 2
+
+
+@dataclass
+class Gaussians:
+    """Per-Gaussian properties, with any leading dims (``[..., N, ...]``).
+
+    Conventions: quaternions w-first (not necessarily normalised), scales as log-scales, opacity as a logit,
+    SH coefficients ``[..., N, (D+1)^2, 3]`` with the DC term first.
+    """
+
+    means: Tensor  # [..., N, 3]
+    quats: Tensor  # [..., N, 4] wxyz
+    log_scales: Tensor  # [..., N, 3]
+    opacity_logits: Tensor  # [..., N]
+    sh: Tensor  # [..., N, C, 3]
+
+    @property
+    def count(self) -> int:
+        return int(self.means.shape[-2])
+
+    def tensors(self) -> dict[str, Tensor]:
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+    def map(self, fn) -> Gaussians:
+        """A new set with ``fn`` applied to every tensor."""
+        return Gaussians(**{k: fn(v) for k, v in self.tensors().items()})
+
+    def check(self, name: str, lead: tuple[int, ...] = ()) -> None:
+        """Raise ShapeError unless the tensors agree on the leading dims ``lead`` and N."""
+        n = self.means.shape[len(lead)] if self.means.dim() > len(lead) else -1
+        c = self.sh.shape[-2] if self.sh.dim() >= 2 else -1
+        want = {
+            "means": (*lead, n, 3),
+            "quats": (*lead, n, 4),
+            "log_scales": (*lead, n, 3),
+            "opacity_logits": (*lead, n),
+            "sh": (*lead, n, c, 3),
+        }
+        for key, shape in want.items():
+            got = tuple(getattr(self, key).shape)
+            if got != shape:
+                raise ShapeError(f"expected shape {list(shape)}, got {list(got)}", field=f"{name}.{key}")
+        if c not in (1, 4, 9, 16):
+            raise ShapeError(f"SH coefficient count must be 1, 4, 9 or 16, got {c}", field=f"{name}.sh")
+
+
+@dataclass
+class Avatar:
+    """A Gaussian blendshape head avatar, ready to deform and render.
+
+    Shapes (N face Gaussians, K blendshapes, J joints, M mouth Gaussians, C = (sh_degree+1)^2):
+      neutral           Gaussians with [N, ...] tensors (B0)
+      deltas            Gaussians with [K, N, ...] tensors (dB_k = B_k - B0, all five properties)
+      lbs_weights       [N, J]      rows sum to 1
+      joint_positions   [J, 3]      rest positions of the joints, world space (metres)
+      pose_correctives  [9 (J-1), N, 3] or None  (FLAME posedirs layout: (R_j - I) of the non-root joints)
+      eyelid_offsets    [2, N, 3] or None        (left, right)
+      mouth             Gaussians with [M, ...] tensors (no blendshapes)
+      mouth_group       [M] int64   0 = upper (follows mouth_joint_names[0]), 1 = lower (mouth_joint_names[1])
+    """
+
+    neutral: Gaussians
+    deltas: Gaussians
+    lbs_weights: Tensor
+    joint_positions: Tensor
+    joint_names: list[str]
+    joint_parents: list[int]
+    expression_names: list[str]
+    mouth: Gaussians
+    mouth_group: Tensor
+    mouth_joint_names: tuple[str, str] = FLAME_MOUTH_JOINTS
+    pose_correctives: Tensor | None = None
+    eyelid_offsets: Tensor | None = None
+    sh_degree: int = 3
+    face_model: str = "synthetic"
+    raster_mode: RasterMode = "classic"
+    default_camera: dict[str, Any] = field(default_factory=dict)
+    provenance: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def num_gaussians(self) -> int:
+        return self.neutral.count
+
+    @property
+    def num_expressions(self) -> int:
+        return len(self.expression_names)
+
+    @property
+    def num_joints(self) -> int:
+        return len(self.joint_names)
+
+    @property
+    def num_mouth(self) -> int:
+        return self.mouth.count
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.neutral.means.dtype
+
+    def joint_index(self, name: str) -> int:
+        return self.joint_names.index(name)
+
+    def to(self, dtype: torch.dtype | None = None, device: torch.device | str | None = None) -> Avatar:
+        """A copy with floating-point tensors cast to ``dtype`` and everything moved to ``device``."""
+
+        def cast(t: Tensor | None) -> Tensor | None:
+            if t is None:
+                return None
+            return t.to(device=device, dtype=dtype if t.is_floating_point() and dtype else t.dtype)
+
+        return replace(
+            self,
+            neutral=self.neutral.map(cast),
+            deltas=self.deltas.map(cast),
+            lbs_weights=cast(self.lbs_weights),
+            joint_positions=cast(self.joint_positions),
+            mouth=self.mouth.map(cast),
+            mouth_group=cast(self.mouth_group),
+            pose_correctives=cast(self.pose_correctives),
+            eyelid_offsets=cast(self.eyelid_offsets),
+        )
+
+    def validate(self) -> None:
+        """Raise ShapeError (or ValueError for metadata) naming the first inconsistency."""
+        n, k, j = self.num_gaussians, self.num_expressions, self.num_joints
+        c = sh_coeff_count(self.sh_degree)
+        self.neutral.check("neutral")
+        if self.neutral.sh.shape[-2] != c:
+            raise ShapeError(f"sh_degree {self.sh_degree} needs {c} coefficients", field="neutral.sh")
+        self.deltas.check("deltas", lead=(k,))
+        if self.deltas.count != n or self.deltas.sh.shape[-2] != c:
+            raise ShapeError(f"expected [K={k}, N={n}, ...] deltas", field="deltas")
+        self.mouth.check("mouth")
+        if self.mouth.sh.shape[-2] != c:
+            raise ShapeError(f"sh_degree {self.sh_degree} needs {c} coefficients", field="mouth.sh")
+        expect = {
+            "lbs_weights": (n, j),
+            "joint_positions": (j, 3),
+            "mouth_group": (self.num_mouth,),
+            "pose_correctives": (9 * (j - 1), n, 3),
+            "eyelid_offsets": (2, n, 3),
+        }
+        for key, shape in expect.items():
+            t = getattr(self, key)
+            if t is not None and tuple(t.shape) != shape:
+                raise ShapeError(f"expected shape {list(shape)}, got {list(t.shape)}", field=key)
+        if len(self.joint_parents) != j:
+            raise ShapeError(f"expected {j} parents, got {len(self.joint_parents)}", field="joint_parents")
+        for i, p in enumerate(self.joint_parents):
+            if not (-1 <= p < i):
+                raise ShapeError(
+                    f"joint {self.joint_names[i]!r} has parent {p}; parents must precede their children "
+                    "and only the first joint is a root",
+                    field="joint_parents",
+                )
+        if self.joint_parents and (self.joint_parents[0] != -1 or -1 in self.joint_parents[1:]):
+            raise ShapeError("exactly one root joint, first in the list", field="joint_parents")
+        if len(set(self.joint_names)) != j:
+            raise ShapeError("joint names must be unique", field="joint_names")
+        if len(set(self.expression_names)) != k:
+            raise ShapeError("expression names must be unique", field="expression_names")
+        for name in self.mouth_joint_names:
+            if name not in self.joint_names:
+                raise ShapeError(f"{name!r} is not a joint ({', '.join(self.joint_names)})",
+                                 field="mouth_joint_names")
+        if self.raster_mode not in RASTER_MODES:
+            raise ShapeError(f"must be one of {RASTER_MODES}, got {self.raster_mode!r}", field="raster_mode")
+        if self.num_mouth and int(self.mouth_group.min()) < 0 or self.num_mouth and int(self.mouth_group.max()) > 1:
+            raise ShapeError("mouth_group values must be 0 (upper) or 1 (lower)", field="mouth_group")

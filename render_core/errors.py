@@ -1,0 +1,29 @@
+"""Typed errors of render_core.
+
+Every error a caller can cause with bad input derives from :class:`BlendsplatError`, so transports map them to
+gRPC status codes and HTTP statuses in one place. Each names what is wrong (``field``) in its message.
+"""
+
+from __future__ import annotations
+
+
+class BlendsplatError(Exception):
+    """Base class of the errors render_core raises on bad input."""
+
+    def __init__(self, message: str, *, field: str | None = None):
+        self.field = field
+        super().__init__(f"{field}: {message}" if field else message)
+
+
+class BundleError(BlendsplatError):
+    """An avatar bundle file is malformed: truncated, tampered, wrong shapes, non-finite values, bad manifest,
+    or a schema version this build cannot read. ``field`` names the offending tensor or manifest key."""
+
+
+class FrameError(BlendsplatError):
+    """Frame parameters (expression coefficients, joint rotations, eyelids, camera) are invalid for an avatar.
+    The message lists what would be valid."""
+
+
+class ShapeError(BlendsplatError):
+    """A tensor argument has the wrong shape, dtype or non-finite values."""
