@@ -1,0 +1,194 @@
+"""The ``blendsplat`` command. JSON results go to stdout alone; progress and logs go to stderr."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from pathlib import Path
+
+from .errors import BlendsplatError
+
+log = logging.getLogger("blendsplat")
+
+
+def _emit(obj: dict) -> None:
+    sys.stdout.write(json.dumps(obj, indent=2) + "\n")
+    sys.stdout.flush()
+
+
+def _background(text: str) -> tuple[float, float, float]:
+    try:
+        r, g, b = (float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected R,G,B in [0, 1], got {text!r}") from None
+    return r, g, b
+
+
+def cmd_bundle_synth(args: argparse.Namespace) -> int:
+    from .bundle import write_bundle
+    from .synth import synth_avatar
+
+    avatar = synth_avatar(args.gaussians, args.blendshapes, seed=args.seed, sh_degree=args.sh_degree,
+                          mouth=args.mouth, raster_mode=args.raster_mode)
+    manifest = write_bundle(avatar, args.out, precision=args.precision)
+    log.info("wrote %s", args.out)
+    _emit({"path": str(args.out), "bytes": Path(args.out).stat().st_size, **manifest["counts"],
+           "precision": manifest["precision"], "digest": manifest["digest"]})
+    return 0
+
+
+def cmd_bundle_inspect(args: argparse.Namespace) -> int:
+    from .bundle import read_manifest
+
+    manifest = read_manifest(args.file)
+    if args.json:
+        _emit(manifest)
+        return 0
+    c = manifest["counts"]
+    print(f"{args.file}: blendsplat avatar, schema {manifest['schema_version']}, face model "
+          f"{manifest['face_model']}")
+    print(f"  gaussians {c['gaussians']} + mouth {c['mouth']}, blendshapes {c['blendshapes']}, "
+          f"SH degree {manifest['sh_degree']}, {manifest['precision']}, raster {manifest['raster_mode']}")
+    print(f"  joints: {', '.join(manifest['joint_names'])} (parents {manifest['joint_parents']}); "
+          f"mouth follows {' / '.join(manifest['mouth_joint_names'])}")
+    print(f"  expressions: {', '.join(manifest['expression_names'])}")
+    return 0
+
+
+def cmd_bundle_validate(args: argparse.Namespace) -> int:
+    from .bundle import validate_bundle
+
+    try:
+        manifest = validate_bundle(args.file)
+    except BlendsplatError as e:
+        _emit({"path": str(args.file), "valid": False, "error": str(e), "field": e.field})
+        return 1
+    _emit({"path": str(args.file), "valid": True, "schema_version": manifest["schema_version"],
+           "digest": manifest["digest"]})
+    return 0
+
+
+def cmd_render(args: argparse.Namespace) -> int:
+    from .offline import render_bundle
+
+    summary = render_bundle(args.bundle, args.drive, args.out, size=args.size, fmt=args.format,
+                            backend=args.backend, background=args.background, fps=args.fps)
+    log.info("rendered %d frames to %s", summary["frames"], summary["out"])
+    _emit(summary)
+    return 0
+
+
+def cmd_bench_render(args: argparse.Namespace) -> int:
+    from .bench import bench_render
+    from .bundle import read_bundle
+
+    avatar = read_bundle(args.bundle) if args.bundle else None
+    report = bench_render(backend=args.backend, gaussians=args.gaussians, blendshapes=args.blendshapes,
+                          size=args.size, streams=args.streams, frames=args.frames, warmup=args.warmup,
+                          sh_degree=args.sh_degree, precision=args.precision, seed=args.seed, avatar=avatar)
+    if args.json:
+        _emit(report)
+    else:
+        ms = report["ms"]
+        print(f"{report['backend']}: {report['gaussians']} gaussians, K={report['blendshapes']}, "
+              f"{report['size']}px, {report['streams']} stream(s): {report['fps']:.2f} fps per stream "
+              f"(blend {ms['blend']} ms, lbs {ms['lbs']} ms, raster {ms['raster']} ms), "
+              f"coverage {report['coverage']:.2f}")
+    return 0
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    from .demo import run_demo
+
+    summary = run_demo(args.out, size=args.size, frames=args.frames, gaussians=args.gaussians)
+    log.info("demo animation: %s", summary["video"])
+    _emit(summary)
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from .raster import backend_names
+
+    p = argparse.ArgumentParser(prog="blendsplat", description=__doc__)
+    p.add_argument("-v", "--verbose", action="store_true", help="debug logging on stderr")
+    sub = p.add_subparsers(dest="command", required=True)
+
+    bundle = sub.add_parser("bundle", help="create, inspect and validate avatar bundles")
+    bsub = bundle.add_subparsers(dest="bundle_command", required=True)
+    s = bsub.add_parser("synth", help="write a random but well-formed head-sized bundle (FLAME joints)")
+    s.add_argument("--out", required=True, type=Path)
+    s.add_argument("--gaussians", type=int, default=10_000)
+    s.add_argument("--blendshapes", type=int, default=50)
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--sh-degree", type=int, default=3, choices=range(4))
+    s.add_argument("--mouth", type=int, default=None, help="mouth Gaussians (default gaussians // 8)")
+    s.add_argument("--precision", choices=("fp32", "fp16"), default="fp32")
+    s.add_argument("--raster-mode", choices=("classic", "antialiased"), default="classic")
+    s.set_defaults(fn=cmd_bundle_synth)
+    s = bsub.add_parser("inspect", help="print a bundle's manifest")
+    s.add_argument("file", type=Path)
+    s.add_argument("--json", action="store_true", help="the whole manifest as JSON")
+    s.set_defaults(fn=cmd_bundle_inspect)
+    s = bsub.add_parser("validate", help="fully check a bundle (digest, shapes, finite values); exit 0 if valid")
+    s.add_argument("file", type=Path)
+    s.set_defaults(fn=cmd_bundle_validate)
+
+    r = sub.add_parser("render", help="render a driving file (JSON lines) to images or a video")
+    r.add_argument("--bundle", required=True, type=Path)
+    r.add_argument("--drive", required=True, type=Path, help="JSON lines: expression, joints, eyelids, camera")
+    r.add_argument("--out", required=True, type=Path)
+    r.add_argument("--size", type=int, default=512)
+    r.add_argument("--format", choices=("png", "exr", "mp4"), default="png")
+    r.add_argument("--backend", choices=backend_names(), default="reference")
+    r.add_argument("--background", type=_background, default=(0.0, 0.0, 0.0), help="R,G,B in [0, 1]")
+    r.add_argument("--fps", type=int, default=30, help="frame rate of mp4 output")
+    r.set_defaults(fn=cmd_render)
+
+    bench = sub.add_parser("bench", help="benchmarks (JSON with --json)")
+    bsub = bench.add_subparsers(dest="bench_command", required=True)
+    b = bsub.add_parser("render", help="end-to-end blend + LBS + raster frame time")
+    b.add_argument("--backend", choices=backend_names(), default="reference")
+    b.add_argument("--gaussians", type=int, default=10_000)
+    b.add_argument("--blendshapes", type=int, default=50)
+    b.add_argument("--size", type=int, default=512)
+    b.add_argument("--streams", type=int, default=1, help="frames batched per call (concurrent streams)")
+    b.add_argument("--frames", type=int, default=5, help="timed frames")
+    b.add_argument("--warmup", type=int, default=1)
+    b.add_argument("--sh-degree", type=int, default=3, choices=range(4))
+    b.add_argument("--precision", choices=("fp32", "fp16"), default="fp32")
+    b.add_argument("--seed", type=int, default=0)
+    b.add_argument("--bundle", type=Path, default=None, help="benchmark this bundle instead of a synthetic one")
+    b.add_argument("--json", action="store_true")
+    b.set_defaults(fn=cmd_bench_render)
+
+    d = sub.add_parser("demo", help="render a demo animation of a synthetic avatar")
+    d.add_argument("--out", type=Path, default=Path("out/demo"))
+    d.add_argument("--size", type=int, default=256)
+    d.add_argument("--frames", type=int, default=60)
+    d.add_argument("--gaussians", type=int, default=10_000)
+    d.set_defaults(fn=cmd_demo)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, stream=sys.stderr,
+                        format="%(levelname)s %(name)s: %(message)s")
+    for attr in ("size", "gaussians", "streams", "frames"):
+        if getattr(args, attr, 1) is not None and getattr(args, attr, 1) < 1:
+            print(f"blendsplat: error: --{attr} must be at least 1", file=sys.stderr)
+            return 2
+    try:
+        return args.fn(args)
+    except BlendsplatError as e:
+        print(f"blendsplat: error: {e}", file=sys.stderr)
+        return 1
+    except (OSError, ValueError) as e:
+        print(f"blendsplat: error: {e}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
