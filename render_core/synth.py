@@ -28,7 +28,8 @@ JOINT_POSITIONS = (
     (-0.032, 0.025, 0.065),  # eye_r
 )
 EYE_RADIUS = 0.014
-SKIN, LIPS, IRIS, TEETH, HAIR = (0.78, 0.58, 0.47), (0.7, 0.3, 0.3), (0.12, 0.08, 0.06), (0.92, 0.9, 0.85), (0.2, 0.14, 0.1)
+SKIN, LIPS, IRIS = (0.78, 0.58, 0.47), (0.7, 0.3, 0.3), (0.12, 0.08, 0.06)
+TEETH, HAIR = (0.92, 0.9, 0.85), (0.2, 0.14, 0.1)
 
 
 def _frame_from_normal(n: Tensor) -> Tensor:

@@ -106,18 +106,26 @@ def project(
     return Projection(means2d, conics, torch.where(in_front, z, zero), opac, radii, ok)
 
 
-def _tile_pixel_rects(proj: Projection, width: int, height: int) -> Tensor:
-    """[V, 4] pixel rectangles (x0, y0, x1, y1), half-open, of the tiles each visible Gaussian's box overlaps."""
+def _pixel_rects(proj: Projection, width: int, height: int) -> Tensor:
+    """[V, 4] half-open pixel rectangles (x0, y0, x1, y1) to evaluate for each visible Gaussian.
+
+    Section 9 evaluates every pixel of every 16x16 tile the box (mean +- radius) overlaps. Pixels whose centre
+    lies outside the box cannot pass the eligibility rule: alpha >= 1/255 means 0.5 d^T S^-1 d <= ln(255 o)
+    = e^2 / 2, an ellipse whose bounding box is mean +- e sqrt(diag S), inside the ceil'ed radius (e is capped at
+    3.33 only for o > 1). So the tile rectangle is intersected with the box grown by one pixel (a margin for
+    rounding) - the same image, with 2-4x fewer pairs to test.
+    """
     tiles_x, tiles_y = (width + TILE - 1) // TILE, (height + TILE - 1) // TILE
     m = proj.means2d.detach()[proj.visible]
     r = proj.radii[proj.visible].to(m.dtype)
     t0 = torch.floor((m - r) / TILE)
     t1 = torch.ceil((m + r) / TILE)
     lim = torch.tensor([tiles_x, tiles_y], dtype=m.dtype)
-    t0 = torch.minimum(t0.clamp_min(0), lim).long()
-    t1 = torch.minimum(t1.clamp_min(0), lim).long()
-    size = torch.tensor([width, height])
-    return torch.cat([t0 * TILE, torch.minimum(t1 * TILE, size)], dim=-1)
+    t0 = torch.minimum(t0.clamp_min(0), lim).long() * TILE
+    t1 = torch.minimum(torch.minimum(t1.clamp_min(0), lim).long() * TILE, torch.tensor([width, height]))
+    b0 = torch.floor(m - r - 1.5).long()  # first pixel whose centre (p + 0.5) is within r + 1 of the mean
+    b1 = torch.ceil(m + r + 0.5).long()
+    return torch.cat([torch.maximum(t0, b0), torch.maximum(torch.minimum(t1, b1), torch.maximum(t0, b0))], -1)
 
 
 def _alpha(means2d: Tensor, conics: Tensor, opac: Tensor, px: Tensor, py: Tensor) -> tuple[Tensor, Tensor]:
@@ -134,7 +142,7 @@ def _eligible_pairs(proj: Projection, width: int, height: int) -> tuple[Tensor, 
     the eligibility rule (sigma >= 0 and alpha >= 1/255)."""
     B, N = proj.visible.shape
     flat = torch.nonzero(proj.visible.reshape(-1)).squeeze(1)
-    rects = _tile_pixel_rects(proj, width, height)
+    rects = _pixel_rects(proj, width, height)
     wx, wy = rects[:, 2] - rects[:, 0], rects[:, 3] - rects[:, 1]
     counts = wx * wy
     m2 = proj.means2d.detach().reshape(B * N, 2)
