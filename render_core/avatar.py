@@ -156,6 +156,9 @@ class Avatar:
         """Raise ShapeError (or ValueError for metadata) naming the first inconsistency."""
         n, k, j = self.num_gaussians, self.num_expressions, self.num_joints
         c = sh_coeff_count(self.sh_degree)
+        if self.deltas.means.dim() != 3 or self.deltas.means.shape[0] != k:
+            raise ShapeError(f"{k} names but {list(self.deltas.means.shape[:1])} blendshapes in deltas.means",
+                             field="expression_names")
         self.neutral.check("neutral")
         if self.neutral.sh.shape[-2] != c:
             raise ShapeError(f"sh_degree {self.sh_degree} needs {c} coefficients", field="neutral.sh")
@@ -197,5 +200,10 @@ class Avatar:
                                  field="mouth_joint_names")
         if self.raster_mode not in RASTER_MODES:
             raise ShapeError(f"must be one of {RASTER_MODES}, got {self.raster_mode!r}", field="raster_mode")
-        if self.num_mouth and int(self.mouth_group.min()) < 0 or self.num_mouth and int(self.mouth_group.max()) > 1:
-            raise ShapeError("mouth_group values must be 0 (upper) or 1 (lower)", field="mouth_group")
+        if self.mouth_group.dtype not in (torch.int32, torch.int64) or (
+            self.num_mouth and not bool(((self.mouth_group == 0) | (self.mouth_group == 1)).all())
+        ):
+            raise ShapeError("mouth_group must be integers 0 (upper) or 1 (lower)", field="mouth_group")
+        w = self.lbs_weights.float()
+        if n and (bool((w < 0).any()) or float((w.sum(-1) - 1).abs().max()) > 1e-3):
+            raise ShapeError("LBS weights must be non-negative and sum to 1 per Gaussian", field="lbs_weights")

@@ -1,0 +1,116 @@
+"""The blendsplat command end to end: bundles, offline rendering in every format, bad input, the benchmark."""
+
+import json
+import subprocess
+import sys
+
+import av
+import numpy as np
+import OpenImageIO as oiio
+import pytest
+
+from render_core.cli import main
+
+
+@pytest.fixture(scope="module")
+def bundle(tmp_path_factory):
+    path = tmp_path_factory.mktemp("cli") / "a.bundle"
+    assert main(["bundle", "synth", "--out", str(path), "--gaussians", "1500", "--blendshapes", "5",
+                 "--seed", "1"]) == 0
+    return path
+
+
+def _json(capsys):
+    return json.loads(capsys.readouterr().out)
+
+
+def _read(path):
+    return oiio.ImageBuf(str(path)).get_pixels(oiio.FLOAT)
+
+
+def test_synth_validate_inspect(bundle, capsys):
+    capsys.readouterr()
+    assert main(["bundle", "validate", str(bundle)]) == 0
+    assert _json(capsys)["valid"] is True
+    assert main(["bundle", "inspect", str(bundle), "--json"]) == 0
+    manifest = _json(capsys)
+    assert manifest["expression_names"] == [f"exp_{i:02d}" for i in range(5)]
+    assert manifest["joint_names"] == ["root", "neck", "jaw", "eye_l", "eye_r"]
+    assert manifest["counts"]["gaussians"] == 1500
+    assert main(["bundle", "inspect", str(bundle)]) == 0
+    assert "exp_04" in capsys.readouterr().out
+
+
+def test_validate_refuses_a_truncated_bundle(bundle, tmp_path, capsys):
+    bad = tmp_path / "bad.bundle"
+    bad.write_bytes(bundle.read_bytes()[:1000])
+    assert main(["bundle", "validate", str(bad)]) == 1
+    report = _json(capsys)
+    assert report["valid"] is False and report["error"]
+
+
+def test_render_png_follows_the_driving_file(bundle, tmp_path, capsys):
+    drive = tmp_path / "d.jsonl"
+    drive.write_text('{}\n{"expression": {"exp_00": 1.0}}\n{"joints": {"jaw": [0.35, 0, 0]}}\n')
+    out = tmp_path / "png"
+    assert main(["render", "--bundle", str(bundle), "--drive", str(drive), "--out", str(out), "--size", "64"]) == 0
+    summary = _json(capsys)
+    assert summary["frames"] == 3 and len(summary["files"]) == 3
+    neutral, expr, jaw = (_read(p) for p in summary["files"])
+    assert neutral.shape == (64, 64, 3)
+    assert np.abs(neutral - jaw).max() > 1e-3 and np.abs(neutral - expr).max() > 1e-3
+    assert neutral.max() > 0.3  # the head is visible
+
+
+def test_render_exr_keeps_float_rgba(bundle, tmp_path, capsys):
+    drive = tmp_path / "d.jsonl"
+    drive.write_text("{}\n")
+    assert main(["render", "--bundle", str(bundle), "--drive", str(drive), "--out", str(tmp_path / "exr"),
+                 "--size", "48", "--format", "exr"]) == 0
+    (path,) = _json(capsys)["files"]
+    pixels = _read(path)
+    assert pixels.shape == (48, 48, 4) and pixels.dtype == np.float32
+    alpha = pixels[..., 3]
+    assert alpha.max() > 0.9 and alpha.min() == 0.0
+    assert len(np.unique(pixels[..., 0])) > 256  # not quantised to 8 bits
+
+
+def test_render_mp4_is_h264_with_one_frame_per_line(bundle, tmp_path, capsys):
+    drive = tmp_path / "d.jsonl"
+    drive.write_text("".join(json.dumps({"camera": {"yaw": y}}) + "\n" for y in (-20, 0, 20, 40)))
+    assert main(["render", "--bundle", str(bundle), "--drive", str(drive), "--out", str(tmp_path / "mp4"),
+                 "--size", "64", "--format", "mp4"]) == 0
+    (path,) = _json(capsys)["files"]
+    with av.open(path) as container:
+        stream = container.streams.video[0]
+        assert stream.codec_context.name == "h264"
+        frames = [f.to_ndarray(format="rgb24") for f in container.decode(stream)]
+    assert len(frames) == 4 and frames[0].shape == (64, 64, 3)
+
+
+def test_bad_driving_lines_are_refused_before_anything_is_written(bundle, tmp_path, capsys):
+    drive = tmp_path / "d.jsonl"
+    drive.write_text('{}\n{"expression": [1.0]}\n')
+    out = tmp_path / "never"
+    assert main(["render", "--bundle", str(bundle), "--drive", str(drive), "--out", str(out), "--size", "32"]) == 1
+    err = capsys.readouterr().err
+    assert "d.jsonl:2" in err and "exactly 5" in err
+    assert not out.exists() or not any(out.iterdir())
+
+
+def test_bench_render_json(capsys):
+    assert main(["bench", "render", "--backend", "reference", "--gaussians", "2000", "--blendshapes", "8",
+                 "--size", "64", "--streams", "2", "--frames", "2", "--json"]) == 0
+    report = _json(capsys)
+    for key in ("backend", "gaussians", "blendshapes", "size", "streams", "sh_degree", "precision", "coverage",
+                "fps", "aggregate_fps"):
+        assert key in report
+    assert set(report["ms"]) == {"blend", "lbs", "raster", "total"}
+    assert report["streams"] == 2 and report["aggregate_fps"] == pytest.approx(2 * report["fps"], rel=1e-3)
+    assert 0.4 <= report["coverage"] <= 0.6
+
+
+def test_console_script_prints_only_json_on_stdout(bundle):
+    proc = subprocess.run([sys.executable, "-m", "render_core.cli", "bundle", "inspect", str(bundle), "--json"],
+                          capture_output=True, text=True, check=True)
+    assert json.loads(proc.stdout)["schema_version"] >= 1
