@@ -223,6 +223,7 @@ def _atomic_write(path: Path, arrays: Mapping[str, np.ndarray], metadata: dict[s
     try:
         _serialize(arrays, str(tmp), metadata)
         with open(tmp, "rb+") as f:
+            os.fchmod(f.fileno(), 0o644)  # safetensors creates 0600 files; bundles are meant to be shared
             os.fsync(f.fileno())
         os.replace(tmp, path)
     except BaseException:

@@ -535,3 +535,9 @@ def test_read_manifest_reads_only_the_header(bundle_path, monkeypatch):
     assert manifest["counts"]["gaussians"] == 600
     monkeypatch.undo()
     assert _error(bundle_path).field == "digest"
+
+
+def test_written_bundles_are_readable_by_other_processes(avatar, tmp_path):
+    path = tmp_path / "shared.bundle"
+    write_bundle(avatar, path)
+    assert path.stat().st_mode & 0o777 == 0o644
