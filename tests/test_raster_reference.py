@@ -127,6 +127,16 @@ def test_matches_brute_force_with_off_centre_principal_point_and_dense_overlap()
     assert float(out.alpha.max()) > 0.99  # the transmittance stop is exercised
 
 
+def test_autograd_path_renders_the_same_image():
+    cams = orbit([0.0, 25.0], width=33, height=21, focal=50.0)
+    args = [t[None].expand(2, *t.shape).clone() for t in _scene(80, 2, torch.float32)]
+    plain = rasterize(*args, cams, torch.tensor([0.5, 0.5, 0.5]))
+    graded = rasterize(*[t.requires_grad_() for t in args], cams, torch.tensor([0.5, 0.5, 0.5]))
+    assert graded.rgb.requires_grad
+    for a, b in ((plain.rgb, graded.rgb), (plain.alpha, graded.alpha), (plain.depth, graded.depth)):
+        torch.testing.assert_close(a, b.detach(), atol=1e-6, rtol=0)
+
+
 def test_empty_and_fully_culled_scenes_give_background():
     cams = orbit([0.0], width=20, height=12, focal=20.0)
     bg = torch.tensor([0.1, 0.2, 0.3])

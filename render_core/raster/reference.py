@@ -137,42 +137,42 @@ def _alpha(means2d: Tensor, conics: Tensor, opac: Tensor, px: Tensor, py: Tensor
     return sigma, torch.clamp(opac * torch.exp(-sigma), max=ALPHA_MAX)
 
 
-def _eligible_pairs(proj: Projection, width: int, height: int) -> tuple[Tensor, Tensor]:
-    """(flat Gaussian index b * N + n, flat pixel index b * H * W + y * W + x) of every evaluated pair that passes
-    the eligibility rule (sigma >= 0 and alpha >= 1/255)."""
+def _eligible_pairs(proj: Projection, width: int, height: int) -> tuple[Tensor, Tensor, Tensor]:
+    """(flat Gaussian index b * N + n, flat pixel index b * H * W + y * W + x, alpha) of every evaluated pair that
+    passes the eligibility rule (sigma >= 0 and alpha >= 1/255); no autograd."""
     B, N = proj.visible.shape
     flat = torch.nonzero(proj.visible.reshape(-1)).squeeze(1)
     rects = _pixel_rects(proj, width, height)
     wx, wy = rects[:, 2] - rects[:, 0], rects[:, 3] - rects[:, 1]
     counts = wx * wy
-    m2 = proj.means2d.detach().reshape(B * N, 2)
-    cn = proj.conics.detach().reshape(B * N, 3)
-    op = proj.opacities.detach().reshape(B * N)
-    gids, pids = [], []
+    # One row per visible Gaussian: what the pair loop gathers (one gather per chunk instead of several).
+    geom = torch.stack([rects[:, 0], rects[:, 1], wx, (flat // N) * (height * width)], -1)
+    params = torch.cat([proj.means2d.detach().reshape(B * N, 2)[flat], proj.conics.detach().reshape(B * N, 3)[flat],
+                        proj.opacities.detach().reshape(B * N, 1)[flat]], -1)
+    gids, pids, alphas = [], [], []
     ends = torch.cumsum(counts, 0)
     start = 0
     while start < len(flat):
         # Largest run of Gaussians whose pairs fit one chunk (always at least one Gaussian).
-        base = ends[start - 1] if start else torch.tensor(0)
-        stop = int(torch.searchsorted(ends, base + PAIR_CHUNK, right=True))
-        stop = max(stop, start + 1)
+        base = int(ends[start - 1]) if start else 0
+        stop = max(int(torch.searchsorted(ends, base + PAIR_CHUNK, right=True)), start + 1)
         c = counts[start:stop]
-        local_g = torch.repeat_interleave(torch.arange(start, stop), c)
-        offs = torch.cumsum(c, 0) - c
-        k = torch.arange(int(c.sum())) - torch.repeat_interleave(offs, c)
-        px = rects[local_g, 0] + k % wx[local_g]
-        py = rects[local_g, 1] + torch.div(k, wx[local_g], rounding_mode="floor")
-        g = flat[local_g]
-        sigma, alpha = _alpha(m2[g], cn[g], op[g], px, py)
+        local = torch.repeat_interleave(torch.arange(start, stop), c)
+        k = torch.arange(base, int(ends[stop - 1])) - (ends[local] - counts[local])
+        x0, y0, w, img = geom[local].unbind(-1)
+        dy = torch.div(k, w, rounding_mode="floor")
+        px, py = x0 + (k - dy * w), y0 + dy
+        p = params[local]
+        sigma, alpha = _alpha(p[:, 0:2], p[:, 2:5], p[:, 5], px, py)
         keep = (sigma >= 0) & (alpha >= ALPHA_MIN)
-        g, px, py = g[keep], px[keep], py[keep]
-        gids.append(g)
-        pids.append(torch.div(g, N, rounding_mode="floor") * (height * width) + py * width + px)
+        gids.append(flat[local[keep]])
+        pids.append((img + py * width + px)[keep])
+        alphas.append(alpha[keep])
         start = stop
     if not gids:
         empty = torch.zeros(0, dtype=torch.long)
-        return empty, empty
-    return torch.cat(gids), torch.cat(pids)
+        return empty, empty, torch.zeros(0, dtype=params.dtype)
+    return torch.cat(gids), torch.cat(pids), torch.cat(alphas)
 
 
 def _segment_exclusive_log_cumsum(values: Tensor, segment_start: Tensor) -> Tensor:
@@ -214,27 +214,28 @@ def rasterize(
     dtype = means.dtype
     proj = project(means, quats, scales, opacities, cameras, mode)
     with torch.no_grad():
-        gid, pid = _eligible_pairs(proj, W, H)
+        gid, pid, alpha = _eligible_pairs(proj, W, H)
         # Order by (pixel, depth, Gaussian index): rank Gaussians by (depth, index), then sort the pair keys.
         rank = torch.empty(B * N, dtype=torch.long)
         rank[torch.sort(proj.depths.detach().reshape(-1), stable=True).indices] = torch.arange(B * N)
         order = torch.argsort(pid * (B * N) + rank[gid])
-        gid, pid = gid[order], pid[order]
+        gid, pid, alpha = gid[order], pid[order], alpha[order]
         first = torch.ones_like(pid, dtype=torch.bool)
         first[1:] = pid[1:] != pid[:-1]
-        _, alpha = _alpha(proj.means2d.detach().reshape(-1, 2)[gid], proj.conics.detach().reshape(-1, 3)[gid],
-                          proj.opacities.detach().reshape(-1)[gid], pid % W, (pid // W) % H)
         log_t = torch.log1p(-alpha.double())
-        t_after = torch.exp(_segment_exclusive_log_cumsum(log_t, first) + log_t)
-        keep = t_after > T_STOP  # a prefix of every pixel's list: T only decreases
-        gid, pid, first = gid[keep], pid[keep], first[keep]
+        log_t_before = _segment_exclusive_log_cumsum(log_t, first)
+        # Keep pairs until the transmittance stop; a prefix of every pixel's list (T only decreases), so the
+        # kept pairs' transmittances are unchanged by dropping the rest.
+        keep = torch.exp(log_t_before + log_t) > T_STOP
+        gid, pid, first, alpha, log_t_before = gid[keep], pid[keep], first[keep], alpha[keep], log_t_before[keep]
 
-    # Differentiable composite of the kept pairs.
-    _, alpha = _alpha(proj.means2d.reshape(-1, 2)[gid], proj.conics.reshape(-1, 3)[gid],
-                      proj.opacities.reshape(-1)[gid], pid % W, (pid // W) % H)
-    log_t = torch.log1p(-alpha.double())
-    t_before = torch.exp(_segment_exclusive_log_cumsum(log_t, first)).to(dtype)
-    w = alpha * t_before
+    inputs = (means, quats, scales, opacities, colors)
+    if torch.is_grad_enabled() and any(t.requires_grad for t in inputs):
+        # Differentiable composite of the kept pairs: alpha and T again, with autograd.
+        _, alpha = _alpha(proj.means2d.reshape(-1, 2)[gid], proj.conics.reshape(-1, 3)[gid],
+                          proj.opacities.reshape(-1)[gid], pid % W, (pid // W) % H)
+        log_t_before = _segment_exclusive_log_cumsum(torch.log1p(-alpha.double()), first)
+    w = alpha * torch.exp(log_t_before).to(dtype)
     num_pix = B * H * W
     acc_a = torch.zeros(num_pix, dtype=dtype).index_add(0, pid, w)
     acc_c = torch.zeros(num_pix, 3, dtype=dtype).index_add(0, pid, w[:, None] * colors.reshape(-1, 3)[gid])
