@@ -1,0 +1,87 @@
+// Data shared by the pipeline (pipeline.cpp) and the per-instruction-set kernels (kernels.inl).
+#pragma once
+
+#include <cstdint>
+
+namespace bs {
+
+constexpr int kTile = 16;
+constexpr float kNear = 0.01f;
+constexpr float kEps2d = 0.3f;
+constexpr float kAlphaMin = 1.0f / 255.0f;
+constexpr float kAlphaMax = 0.999f;
+constexpr float kTStop = 1e-4f;
+constexpr int kMaxBatch = 64;  // frames blended together per pass (larger batches are split)
+
+// A packed avatar (built by render_core/raster/native.py; the arrays belong to Python).
+// Row layout of base/vals (Dp floats): position 3, quaternion 4 (wxyz), log-scale 3, opacity logit 1,
+// SH 3C (coefficient-major, channel-minor), zero padding to a multiple of 16.
+struct AvatarView {
+    int n_total = 0;  // face + mouth Gaussians
+    int n_face = 0;
+    int K = 0, J = 0, C = 0, Dp = 0;
+    int P = 0, Ppad = 0;  // pose-corrective features 9 (J - 1), padded to 16
+    bool half = false;    // vals and pc are fp16 (uint16 bits) instead of fp32
+    const float* base = nullptr;        // [n_total, Dp]
+    const int32_t* row_ptr = nullptr;   // [n_total + 1] CSR over (Gaussian, blendshape) pairs stored
+    const int32_t* col = nullptr;       // [nnz] blendshape index of each stored pair
+    const void* vals = nullptr;         // [nnz, Dp] deltas
+    const void* pc = nullptr;           // [n_face, 3, Ppad] pose correctives, or null
+    const float* eyelid = nullptr;      // [n_face, 2, 3] eyelid offsets, or null
+    const float* lbs = nullptr;         // [J, n_total] skinning weights (mouth: one-hot on its joint)
+    const float* joints = nullptr;      // [J, 3] rest positions
+    const int32_t* parents = nullptr;   // [J]
+};
+
+// One pinhole camera (OpenCV, world-to-camera) and its image.
+struct Cam {
+    float fx, fy, cx, cy;
+    float R[9];
+    float t[3];
+    float centre[3];
+    int width, height;
+    bool antialiased;
+};
+
+// A projected Gaussian, what the rasterizer reads (one cache line).
+struct Splat {
+    float mx, my;          // pixel-space centre
+    float ca, cb, cc;      // conic: sigma = 0.5 (ca dx^2 + cc dy^2) + cb dx dy
+    float opacity, depth;  // compositing opacity (with the antialiasing compensation), camera z
+    float r, g, b;         // colour
+    float x0, x1, y0, y1;  // pixels whose centres can pass eligibility, half-open; empty when culled
+    float level;           // ln(255 opacity): eligible where 0.5 d^T S^-1 d <= level
+    float pad;
+};
+static_assert(sizeof(Splat) == 64, "Splat is one cache line");
+
+// Posed Gaussians (world space) for the raster-only entry point, array-of-structs per batch.
+struct PosedView {
+    const float* means;      // [B, N, 3]
+    const float* quats;      // [B, N, 4] wxyz
+    const float* scales;     // [B, N, 3]
+    const float* opacities;  // [B, N]
+    const float* colors;     // [B, N, 3]
+    int N;
+};
+
+struct Kernels {
+    const char* name;
+    // Eq. 1 blend + pose correctives + eyelids for Gaussians [n0, n1) of B frames into out [B, n_total, Dp].
+    void (*blend)(const AvatarView& av, const float* psi, const float* pose_feat, const float* eyelids, int B,
+                  float* out, int n0, int n1);
+    // LBS, rotation, activation, SH colour and projection of blended Gaussians [n0, n1) for frame b.
+    void (*deform_project)(const AvatarView& av, const float* blended, const float* A, const Cam& cam, Splat* out,
+                           int n0, int n1);
+    // Projection of already posed Gaussians [n0, n1) of one frame.
+    void (*project_posed)(const PosedView& pv, int b, const Cam& cam, Splat* out, int n0, int n1);
+    // Front-to-back compositing of one 16x16 tile from its splats in depth order.
+    void (*raster_tile)(const Splat* splats, int count, int tx, int ty, const Cam& cam, const float* background,
+                        float* rgb, float* alpha, float* depth);
+};
+
+namespace scalar { const Kernels& kernels(); }
+namespace avx2 { const Kernels& kernels(); }
+namespace avx512 { const Kernels& kernels(); }
+
+}  // namespace bs

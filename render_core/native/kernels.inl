@@ -1,0 +1,443 @@
+// The per-frame kernels, written once over a SIMD wrapper V (simd.hpp) and compiled once per instruction set
+// (kernels_scalar.cpp, kernels_avx2.cpp, kernels_avx512.cpp define V and BS_NS, then include this file).
+// Semantics: METHOD.md sections 2 and 9, exactly as render_core/deform.py and render_core/raster/reference.py.
+
+#include <algorithm>
+#include <cmath>
+#include <cstring>
+#include <vector>
+
+#include "common.hpp"
+#include "simd.hpp"
+
+namespace bs {
+namespace BS_NS {
+
+using F = V::F;
+using M = V::M;
+constexpr int W = V::W;
+constexpr int kMaxLanes = 16;
+
+// ------------------------------------------------------------------------------------------------ blend
+
+template <class T, int DP>
+static void blend_t(const AvatarView& av, const float* psi, const float* pose_feat, const float* eyelids, int B,
+                    float* out, int n0, int n1) {
+    alignas(64) float acc[kMaxBatch * DP];
+    const T* vals = static_cast<const T*>(av.vals);
+    const T* pc = static_cast<const T*>(av.pc);
+    bool any_pose[kMaxBatch];
+    for (int b = 0; b < B; ++b) {
+        any_pose[b] = false;
+        for (int p = 0; p < av.P; ++p) any_pose[b] |= pose_feat[b * av.Ppad + p] != 0.0f;
+    }
+    for (int n = n0; n < n1; ++n) {
+        const float* base = av.base + size_t(n) * DP;
+        for (int b = 0; b < B; ++b) std::memcpy(acc + b * DP, base, sizeof(float) * DP);
+        for (int j = av.row_ptr[n]; j < av.row_ptr[n + 1]; ++j) {
+            const int k = av.col[j];
+            const T* v = vals + size_t(j) * DP;
+            if (B == 1) {
+                const F w = V::set1(psi[k]);
+#pragma GCC unroll 16
+                for (int d = 0; d < DP; d += W) V::store(acc + d, V::fma(w, V::load(v + d), V::load(acc + d)));
+            } else {
+                for (int d = 0; d < DP; d += W) {
+                    const F vd = V::load(v + d);
+                    for (int b = 0; b < B; ++b) {
+                        float* a = acc + b * DP + d;
+                        V::store(a, V::fma(V::set1(psi[b * av.K + k]), vd, V::load(a)));
+                    }
+                }
+            }
+        }
+        if (pc != nullptr && n < av.n_face) {
+            for (int b = 0; b < B; ++b) {
+                if (!any_pose[b]) continue;
+                const float* f = pose_feat + b * av.Ppad;
+                for (int c = 0; c < 3; ++c) {
+                    const T* row = pc + (size_t(n) * 3 + c) * av.Ppad;
+                    F s = V::set1(0.0f);
+                    for (int p = 0; p < av.Ppad; p += W) s = V::fma(V::load(f + p), V::load(row + p), s);
+                    acc[b * DP + c] += V::hsum(s);
+                }
+            }
+        }
+        if (av.eyelid != nullptr && n < av.n_face) {
+            const float* e = av.eyelid + size_t(n) * 6;
+            for (int b = 0; b < B; ++b) {
+                const float e0 = eyelids[b * 2], e1 = eyelids[b * 2 + 1];
+                if (e0 == 0.0f && e1 == 0.0f) continue;
+                for (int c = 0; c < 3; ++c) acc[b * DP + c] += e0 * e[c] + e1 * e[3 + c];
+            }
+        }
+        for (int b = 0; b < B; ++b)
+            std::memcpy(out + (size_t(b) * av.n_total + n) * DP, acc + b * DP, sizeof(float) * DP);
+    }
+}
+
+template <class T>
+static void blend_dp(const AvatarView& av, const float* psi, const float* pf, const float* el, int B, float* out,
+                     int n0, int n1) {
+    switch (av.Dp) {
+        case 16: return blend_t<T, 16>(av, psi, pf, el, B, out, n0, n1);
+        case 32: return blend_t<T, 32>(av, psi, pf, el, B, out, n0, n1);
+        case 48: return blend_t<T, 48>(av, psi, pf, el, B, out, n0, n1);
+        default: return blend_t<T, 64>(av, psi, pf, el, B, out, n0, n1);
+    }
+}
+
+static void blend(const AvatarView& av, const float* psi, const float* pf, const float* el, int B, float* out,
+                  int n0, int n1) {
+    if (av.half)
+        blend_dp<uint16_t>(av, psi, pf, el, B, out, n0, n1);
+    else
+        blend_dp<float>(av, psi, pf, el, B, out, n0, n1);
+}
+
+// ------------------------------------------------------------------------------------------------ geometry
+
+struct Mat3 {
+    F m[9];
+};
+
+static inline F dot3(F a0, F a1, F a2, F b0, F b1, F b2) { return V::fma(a0, b0, V::fma(a1, b1, a2 * b2)); }
+
+// R <- (R + R^-T) / 2, three times (render_core.rotation.orthogonalize).
+static inline Mat3 orthogonalize(Mat3 r) {
+    for (int it = 0; it < 3; ++it) {
+        const F* m = r.m;
+        F c0[3] = {m[4] * m[8] - m[5] * m[7], m[5] * m[6] - m[3] * m[8], m[3] * m[7] - m[4] * m[6]};
+        F c1[3] = {m[7] * m[2] - m[8] * m[1], m[8] * m[0] - m[6] * m[2], m[6] * m[1] - m[7] * m[0]};
+        F c2[3] = {m[1] * m[5] - m[2] * m[4], m[2] * m[3] - m[0] * m[5], m[0] * m[4] - m[1] * m[3]};
+        F det = dot3(m[0], m[1], m[2], c0[0], c0[1], c0[2]);
+        F h = V::set1(0.5f) / det;
+        Mat3 o;
+        for (int j = 0; j < 3; ++j) {
+            o.m[j] = V::fma(c0[j], h, V::set1(0.5f) * m[j]);
+            o.m[3 + j] = V::fma(c1[j], h, V::set1(0.5f) * m[3 + j]);
+            o.m[6 + j] = V::fma(c2[j], h, V::set1(0.5f) * m[6 + j]);
+        }
+        r = o;
+    }
+    return r;
+}
+
+static inline void normalize4(F q[4]) {
+    F n = V::sqrt(V::fma(q[0], q[0], V::fma(q[1], q[1], V::fma(q[2], q[2], q[3] * q[3]))));
+    F inv = V::set1(1.0f) / V::max(n, V::set1(1e-12f));
+    for (int i = 0; i < 4; ++i) q[i] = q[i] * inv;
+}
+
+// Shepperd's method, the largest candidate first in ties (render_core.rotation.matrix_to_quat).
+static inline void matrix_to_quat(const Mat3& r, F q[4]) {
+    const F* m = r.m;
+    const F one = V::set1(1.0f);
+    F cand[4][4] = {
+        {one + m[0] + m[4] + m[8], m[7] - m[5], m[2] - m[6], m[3] - m[1]},
+        {m[7] - m[5], one + m[0] - m[4] - m[8], m[1] + m[3], m[2] + m[6]},
+        {m[2] - m[6], m[1] + m[3], one - m[0] + m[4] - m[8], m[5] + m[7]},
+        {m[3] - m[1], m[2] + m[6], m[5] + m[7], one - m[0] - m[4] + m[8]},
+    };
+    F best[4] = {cand[0][0], cand[0][1], cand[0][2], cand[0][3]};
+    F bd = cand[0][0];
+    for (int i = 1; i < 4; ++i) {
+        M gt = V::gt(cand[i][i], bd);
+        for (int c = 0; c < 4; ++c) best[c] = V::select(gt, cand[i][c], best[c]);
+        bd = V::select(gt, cand[i][i], bd);
+    }
+    F s = V::set1(0.5f) / V::sqrt(V::max(bd, V::set1(1e-12f)));
+    for (int c = 0; c < 4; ++c) q[c] = best[c] * s;
+    normalize4(q);
+    M neg = V::lt(q[0], V::set1(0.0f));
+    for (int c = 0; c < 4; ++c) q[c] = V::select(neg, -q[c], q[c]);
+}
+
+static inline Mat3 quat_to_matrix(const F q[4]) {
+    F w = q[0], x = q[1], y = q[2], z = q[3];
+    const F one = V::set1(1.0f), two = V::set1(2.0f);
+    Mat3 r;
+    r.m[0] = one - two * (y * y + z * z);
+    r.m[1] = two * (x * y - w * z);
+    r.m[2] = two * (x * z + w * y);
+    r.m[3] = two * (x * y + w * z);
+    r.m[4] = one - two * (x * x + z * z);
+    r.m[5] = two * (y * z - w * x);
+    r.m[6] = two * (x * z - w * y);
+    r.m[7] = two * (y * z + w * x);
+    r.m[8] = one - two * (x * x + y * y);
+    return r;
+}
+
+static inline void quat_mul(const F a[4], const F b[4], F o[4]) {
+    o[0] = a[0] * b[0] - a[1] * b[1] - a[2] * b[2] - a[3] * b[3];
+    o[1] = a[0] * b[1] + a[1] * b[0] + a[2] * b[3] - a[3] * b[2];
+    o[2] = a[0] * b[2] - a[1] * b[3] + a[2] * b[0] + a[3] * b[1];
+    o[3] = a[0] * b[3] + a[1] * b[2] - a[2] * b[1] + a[3] * b[0];
+}
+
+// Real SH basis (3DGS / gsplat constants and signs) at direction (x, y, z), dotted with coefficients.
+static inline void eval_sh(const float* buf, int C, F x, F y, F z, F rgb[3]) {
+    auto coef = [&](int k, int c) { return V::load(buf + (11 + k * 3 + c) * W); };
+    F basis[16];
+    basis[0] = V::set1(0.28209479177387814f);
+    if (C > 1) {
+        const F c1 = V::set1(0.4886025119029199f);
+        basis[1] = -c1 * y;
+        basis[2] = c1 * z;
+        basis[3] = -c1 * x;
+    }
+    if (C > 4) {
+        F xx = x * x, yy = y * y, zz = z * z;
+        basis[4] = V::set1(1.0925484305920792f) * x * y;
+        basis[5] = V::set1(-1.0925484305920792f) * y * z;
+        basis[6] = V::set1(0.31539156525252005f) * (V::set1(2.0f) * zz - xx - yy);
+        basis[7] = V::set1(-1.0925484305920792f) * x * z;
+        basis[8] = V::set1(0.5462742152960396f) * (xx - yy);
+        if (C > 9) {
+            basis[9] = V::set1(-0.5900435899266435f) * y * (V::set1(3.0f) * xx - yy);
+            basis[10] = V::set1(2.890611442640554f) * x * y * z;
+            basis[11] = V::set1(-0.4570457994644658f) * y * (V::set1(4.0f) * zz - xx - yy);
+            basis[12] = V::set1(0.3731763325901154f) * z * (V::set1(2.0f) * zz - V::set1(3.0f) * xx - V::set1(3.0f) * yy);
+            basis[13] = V::set1(-0.4570457994644658f) * x * (V::set1(4.0f) * zz - xx - yy);
+            basis[14] = V::set1(1.445305721320277f) * z * (xx - yy);
+            basis[15] = V::set1(-0.5900435899266435f) * x * (xx - V::set1(3.0f) * yy);
+        }
+    }
+    for (int c = 0; c < 3; ++c) {
+        F s = basis[0] * coef(0, c);
+        for (int k = 1; k < C; ++k) s = V::fma(basis[k], coef(k, c), s);
+        rgb[c] = V::max(s + V::set1(0.5f), V::set1(0.0f));
+    }
+}
+
+// Section 9 steps 1-3 for W Gaussians; writes lanes [0, lanes) of out.
+static inline void project(const F x[3], const Mat3& rw, const F s[3], F opacity, const F rgb[3], const Cam& cam,
+                           Splat* out, int lanes) {
+    const float* R = cam.R;
+    F p[3];
+    for (int i = 0; i < 3; ++i)
+        p[i] = V::fma(V::set1(R[3 * i]), x[0], V::fma(V::set1(R[3 * i + 1]), x[1],
+                                                      V::fma(V::set1(R[3 * i + 2]), x[2], V::set1(cam.t[i]))));
+    M valid = V::ge(p[2], V::set1(kNear));
+    F zs = V::select(valid, p[2], V::set1(1.0f));
+    F rz = V::set1(1.0f) / zs;
+    const float tanx = 0.5f * cam.width / cam.fx, tany = 0.5f * cam.height / cam.fy;
+    F txc = zs * V::min(V::set1((cam.width - cam.cx) / cam.fx + 0.3f * tanx),
+                        V::max(V::set1(-(cam.cx / cam.fx + 0.3f * tanx)), p[0] * rz));
+    F tyc = zs * V::min(V::set1((cam.height - cam.cy) / cam.fy + 0.3f * tany),
+                        V::max(V::set1(-(cam.cy / cam.fy + 0.3f * tany)), p[1] * rz));
+    F j00 = V::set1(cam.fx) * rz, j02 = -V::set1(cam.fx) * txc * rz * rz;
+    F j11 = V::set1(cam.fy) * rz, j12 = -V::set1(cam.fy) * tyc * rz * rz;
+    // M = Rc Rw S; T2 = J M; cov2d = T2 T2^T.
+    F t0[3], t1[3];
+    for (int c = 0; c < 3; ++c) {
+        F m0 = V::fma(V::set1(R[0]), rw.m[c], V::fma(V::set1(R[1]), rw.m[3 + c], V::set1(R[2]) * rw.m[6 + c])) * s[c];
+        F m1 = V::fma(V::set1(R[3]), rw.m[c], V::fma(V::set1(R[4]), rw.m[3 + c], V::set1(R[5]) * rw.m[6 + c])) * s[c];
+        F m2 = V::fma(V::set1(R[6]), rw.m[c], V::fma(V::set1(R[7]), rw.m[3 + c], V::set1(R[8]) * rw.m[6 + c])) * s[c];
+        t0[c] = V::fma(j00, m0, j02 * m2);
+        t1[c] = V::fma(j11, m1, j12 * m2);
+    }
+    F c00 = dot3(t0[0], t0[1], t0[2], t0[0], t0[1], t0[2]);
+    F c01 = dot3(t0[0], t0[1], t0[2], t1[0], t1[1], t1[2]);
+    F c11 = dot3(t1[0], t1[1], t1[2], t1[0], t1[1], t1[2]);
+    F det_raw = c00 * c11 - c01 * c01;
+    c00 = c00 + V::set1(kEps2d);
+    c11 = c11 + V::set1(kEps2d);
+    F det = c00 * c11 - c01 * c01;
+    valid = V::mand(valid, V::gt(det, V::set1(0.0f)));
+    F dets = V::select(valid, det, V::set1(1.0f));
+    F rdet = V::set1(1.0f) / dets;
+    F op = opacity;
+    if (cam.antialiased) op = op * V::sqrt(V::max(det_raw * rdet, V::set1(0.0f)));
+    valid = V::mand(valid, V::ge(op, V::set1(kAlphaMin)));
+    F mx = V::fma(V::set1(cam.fx), p[0] * rz, V::set1(cam.cx));
+    F my = V::fma(V::set1(cam.fy), p[1] * rz, V::set1(cam.cy));
+    // Pixels whose centres can pass alpha >= 1/255: inside mean +- sqrt(2 ln(255 o) diag S) (+0.01 px).
+    F level = V::max(V::set1(2.0f) * V::log(V::max(op, V::set1(kAlphaMin)) * V::set1(255.0f)), V::set1(0.0f));
+    F hx = V::sqrt(level * c00) + V::set1(0.01f), hy = V::sqrt(level * c11) + V::set1(0.01f);
+    F x0 = V::max(V::ceil(mx - hx - V::set1(0.5f)), V::set1(0.0f));
+    F x1 = V::min(V::floor(mx + hx - V::set1(0.5f)) + V::set1(1.0f), V::set1(float(cam.width)));
+    F y0 = V::max(V::ceil(my - hy - V::set1(0.5f)), V::set1(0.0f));
+    F y1 = V::min(V::floor(my + hy - V::set1(0.5f)) + V::set1(1.0f), V::set1(float(cam.height)));
+    valid = V::mand(valid, V::mand(V::lt(x0, x1), V::lt(y0, y1)));
+    const F zero = V::set1(0.0f);
+    alignas(64) float f[15][kMaxLanes];
+    const F fields[15] = {mx, my, c11 * rdet, -c01 * rdet, c00 * rdet, op, p[2], rgb[0], rgb[1], rgb[2],
+                          V::select(valid, x0, zero), V::select(valid, x1, zero), V::select(valid, y0, zero),
+                          V::select(valid, y1, zero), V::set1(0.5f) * level};
+    for (int i = 0; i < 15; ++i) V::store(f[i], fields[i]);
+    for (int l = 0; l < lanes; ++l) {
+        Splat& o = out[l];
+        o.mx = f[0][l], o.my = f[1][l], o.ca = f[2][l], o.cb = f[3][l], o.cc = f[4][l];
+        o.opacity = f[5][l], o.depth = f[6][l], o.r = f[7][l], o.g = f[8][l], o.b = f[9][l];
+        o.x0 = f[10][l], o.x1 = f[11][l], o.y0 = f[12][l], o.y1 = f[13][l];
+        o.level = f[14][l], o.pad = 0.0f;
+    }
+}
+
+// ------------------------------------------------------------------------------------------------ deform
+
+static void deform_project(const AvatarView& av, const float* blended, const float* A, const Cam& cam, Splat* out,
+                           int n0, int n1) {
+    const int DP = av.Dp, J = av.J;
+    alignas(64) float buf[64 * kMaxLanes];
+    alignas(64) float wbuf[32 * kMaxLanes];
+    for (int g0 = n0; g0 < n1; g0 += W) {
+        const int lanes = std::min(W, n1 - g0);
+        for (int l = 0; l < W; ++l) {  // transpose W rows (tail lanes repeat the last Gaussian)
+            const int n = g0 + std::min(l, lanes - 1);
+            const float* row = blended + size_t(n) * DP;
+            for (int d = 0; d < 11 + 3 * av.C; ++d) buf[d * W + l] = row[d];
+            for (int j = 0; j < J; ++j) wbuf[j * W + l] = av.lbs[size_t(j) * av.n_total + n];
+        }
+        // T = I + sum_j w_j (A_j - I), 3x4.
+        F t[12];
+        for (int e = 0; e < 12; ++e) t[e] = V::set1((e == 0 || e == 5 || e == 10) ? 1.0f : 0.0f);
+        for (int j = 0; j < J; ++j) {
+            const F w = V::load(wbuf + j * W);
+            const float* a = A + j * 12;
+            for (int e = 0; e < 12; ++e) {
+                const float id = (e == 0 || e == 5 || e == 10) ? 1.0f : 0.0f;
+                t[e] = V::fma(w, V::set1(a[e] - id), t[e]);
+            }
+        }
+        F xr[3] = {V::load(buf), V::load(buf + W), V::load(buf + 2 * W)};
+        F x[3];
+        for (int i = 0; i < 3; ++i) x[i] = V::fma(t[4 * i], xr[0], V::fma(t[4 * i + 1], xr[1], V::fma(t[4 * i + 2], xr[2], t[4 * i + 3])));
+        Mat3 rn;
+        for (int i = 0; i < 3; ++i)
+            for (int j = 0; j < 3; ++j) rn.m[3 * i + j] = t[4 * i + j];
+        rn = orthogonalize(rn);
+        F qn[4], qg[4], qw[4];
+        matrix_to_quat(rn, qn);
+        for (int c = 0; c < 4; ++c) qg[c] = V::load(buf + (3 + c) * W);
+        normalize4(qg);
+        quat_mul(qn, qg, qw);
+        normalize4(qw);
+        Mat3 rw = quat_to_matrix(qw);
+        F s[3];
+        for (int c = 0; c < 3; ++c) s[c] = V::exp(V::load(buf + (7 + c) * W));
+        F opacity = V::set1(1.0f) / (V::set1(1.0f) + V::exp(-V::load(buf + 10 * W)));
+        // View direction in the Gaussian's rest frame: R_n^T normalise(x - centre).
+        F d[3] = {x[0] - V::set1(cam.centre[0]), x[1] - V::set1(cam.centre[1]), x[2] - V::set1(cam.centre[2])};
+        F inv = V::set1(1.0f) / V::max(V::sqrt(dot3(d[0], d[1], d[2], d[0], d[1], d[2])), V::set1(1e-12f));
+        for (int i = 0; i < 3; ++i) d[i] = d[i] * inv;
+        F dl[3];
+        for (int j = 0; j < 3; ++j) dl[j] = dot3(rn.m[j], rn.m[3 + j], rn.m[6 + j], d[0], d[1], d[2]);
+        F rgb[3];
+        eval_sh(buf, av.C, dl[0], dl[1], dl[2], rgb);
+        project(x, rw, s, opacity, rgb, cam, out + g0, lanes);
+    }
+}
+
+static void project_posed(const PosedView& pv, int b, const Cam& cam, Splat* out, int n0, int n1) {
+    alignas(64) float buf[14 * kMaxLanes];
+    const size_t off = size_t(b) * pv.N;
+    for (int g0 = n0; g0 < n1; g0 += W) {
+        const int lanes = std::min(W, n1 - g0);
+        for (int l = 0; l < W; ++l) {
+            const size_t n = off + g0 + std::min(l, lanes - 1);
+            for (int c = 0; c < 3; ++c) buf[c * W + l] = pv.means[n * 3 + c];
+            for (int c = 0; c < 4; ++c) buf[(3 + c) * W + l] = pv.quats[n * 4 + c];
+            for (int c = 0; c < 3; ++c) buf[(7 + c) * W + l] = pv.scales[n * 3 + c];
+            buf[10 * W + l] = pv.opacities[n];
+            for (int c = 0; c < 3; ++c) buf[(11 + c) * W + l] = pv.colors[n * 3 + c];
+        }
+        F x[3] = {V::load(buf), V::load(buf + W), V::load(buf + 2 * W)};
+        F q[4];
+        for (int c = 0; c < 4; ++c) q[c] = V::load(buf + (3 + c) * W);
+        normalize4(q);
+        Mat3 rw = quat_to_matrix(q);
+        F s[3] = {V::load(buf + 7 * W), V::load(buf + 8 * W), V::load(buf + 9 * W)};
+        F rgb[3] = {V::load(buf + 11 * W), V::load(buf + 12 * W), V::load(buf + 13 * W)};
+        project(x, rw, s, V::load(buf + 10 * W), rgb, cam, out + g0, lanes);
+    }
+}
+
+// ------------------------------------------------------------------------------------------------ raster
+
+// One 16x16 tile. Each row is cut into segments of W pixels (one vector). The tile's Gaussians (depth order) are
+// first bucketed by the segments their eligibility ellipse reaches on each row (the exact span of
+// 0.5 d^T S^-1 d <= ln(255 o) at the row's centre line, plus 0.05 px); then each segment runs through its bucket
+// branch-free, its transmittance, colour and depth in registers, and stops once all its pixels have stopped.
+static void raster_tile(const Splat* splats, int count, int tx, int ty, const Cam& cam, const float* background,
+                        float* rgb, float* alpha, float* depth) {
+    constexpr int NS = kTile / W;  // segments per row
+    const int xb = tx * kTile, yb = ty * kTile;
+    const int xe = std::min(xb + kTile, cam.width), ye = std::min(yb + kTile, cam.height);
+    const int rows = ye - yb, segs = rows * NS;
+    static thread_local std::vector<uint32_t> bucket_tls;
+    std::vector<uint32_t>& bucket = bucket_tls;
+    if (bucket.size() < size_t(segs) * count) bucket.resize(size_t(segs) * count);
+    int fill[kTile * NS] = {0};
+    for (int li = 0; li < count; ++li) {
+        const Splat& s = splats[li];
+        const int r0 = std::max(int(s.y0) - yb, 0), r1 = std::min(int(s.y1) - yb, rows);
+        const float ia = 1.0f / s.ca, shear = s.cb * ia, k2 = s.cb * s.cb - s.ca * s.cc, k0 = 2.0f * s.ca * s.level;
+        const int xlo_box = std::max(int(s.x0), xb), xhi_box = std::min(int(s.x1), xe) - 1;
+        for (int r = r0; r < r1; ++r) {
+            const float dy = s.my - (float(yb + r) + 0.5f);
+            const float disc = dy * dy * k2 + k0;
+            if (disc < 0.0f) continue;
+            const float half = std::sqrt(disc) * ia + 0.05f, xc = s.mx - 0.5f + shear * dy;
+            const int xlo = std::max(int(std::ceil(xc - half)), xlo_box);
+            const int xhi = std::min(int(std::floor(xc + half)), xhi_box);
+            if (xlo > xhi) continue;
+            for (int g = (xlo - xb) / W; g <= (xhi - xb) / W; ++g) {
+                const int seg = r * NS + g;
+                bucket[size_t(seg) * count + fill[seg]++] = uint32_t(li);
+            }
+        }
+    }
+    const F iota = V::iota();
+    const F one = V::set1(1.0f), zero = V::set1(0.0f);
+    const F amax = V::set1(kAlphaMax), amin = V::set1(kAlphaMin), tstop = V::set1(kTStop);
+    for (int seg = 0; seg < segs; ++seg) {
+        const int r = seg / NS, x0 = xb + (seg % NS) * W, y = yb + r;
+        const float yc = float(y) + 0.5f;
+        const F px = V::set1(float(x0) + 0.5f) + iota;
+        F T = one, Cr = zero, Cg = zero, Cb = zero, D = zero;
+        M live = V::lt(px, V::set1(float(xe)));
+        const uint32_t* list = bucket.data() + size_t(seg) * count;
+        const int n = fill[seg];
+        for (int e = 0; e < n; ++e) {
+            const Splat& s = splats[list[e]];
+            const float dy = s.my - yc;
+            const F dx = V::set1(s.mx) - px;
+            const F sigma = V::fma(dx, V::fma(V::set1(0.5f * s.ca), dx, V::set1(s.cb * dy)),
+                                   V::set1(0.5f * s.cc * dy * dy));
+            const F a = V::min(amax, V::set1(s.opacity) * V::exp(-sigma));
+            const M ok = V::mand(live, V::mand(V::ge(sigma, zero), V::ge(a, amin)));
+            const F nt = T * (one - a);
+            const M stop = V::mand(ok, V::le(nt, tstop));
+            const M add = V::mandnot(stop, ok);
+            const F w = V::select(add, a * T, zero);
+            Cr = V::fma(w, V::set1(s.r), Cr);
+            Cg = V::fma(w, V::set1(s.g), Cg);
+            Cb = V::fma(w, V::set1(s.b), Cb);
+            D = V::fma(w, V::set1(s.depth), D);
+            T = V::select(add, nt, T);
+            live = V::mandnot(stop, live);
+            if ((e & 7) == 7 && !V::any(live)) break;
+        }
+        alignas(64) float out[5][kMaxLanes];
+        V::store(out[0], T), V::store(out[1], Cr), V::store(out[2], Cg), V::store(out[3], Cb), V::store(out[4], D);
+        for (int i = 0; i < W && x0 + i < xe; ++i) {
+            const size_t p = size_t(y) * cam.width + x0 + i;
+            rgb[p * 3 + 0] = out[1][i] + out[0][i] * background[0];
+            rgb[p * 3 + 1] = out[2][i] + out[0][i] * background[1];
+            rgb[p * 3 + 2] = out[3][i] + out[0][i] * background[2];
+            alpha[p] = 1.0f - out[0][i];
+            depth[p] = out[4][i];
+        }
+    }
+}
+
+const Kernels& kernels() {
+    static const Kernels k{V::name, &blend, &deform_project, &project_posed, &raster_tile};
+    return k;
+}
+
+}  // namespace BS_NS
+}  // namespace bs

@@ -1,0 +1,233 @@
+// Python bindings (nanobind) of the native CPU renderer: numpy arrays in and out, no copies, the GIL released
+// while rendering. Independent of torch's ABI: render_core/raster/native.py passes tensors as numpy views.
+#include <nanobind/nanobind.h>
+#include <nanobind/ndarray.h>
+#include <nanobind/stl/string.h>
+#include <nanobind/stl/vector.h>
+#include <omp.h>
+
+#include <algorithm>
+#include <cmath>
+#include <stdexcept>
+#include <string>
+#include <vector>
+
+#include "pipeline.hpp"
+
+namespace nb = nanobind;
+using namespace nb::literals;
+
+namespace {
+
+template <class T>
+using In = nb::ndarray<const T, nb::c_contig, nb::device::cpu>;
+template <class T>
+using Out = nb::ndarray<T, nb::c_contig, nb::device::cpu>;
+using AnyIn = nb::ndarray<nb::c_contig, nb::device::cpu>;
+
+void require(bool ok, const std::string& what) {
+    if (!ok) throw std::invalid_argument(what);
+}
+
+template <class A>
+void require_shape(const A& a, std::initializer_list<size_t> shape, const char* name) {
+    bool ok = a.ndim() == shape.size();
+    size_t i = 0;
+    for (size_t s : shape) ok = ok && a.shape(i++) == s;
+    if (!ok) {
+        std::string got = "[";
+        for (size_t d = 0; d < a.ndim(); ++d) got += (d ? ", " : "") + std::to_string(a.shape(d));
+        std::string want = "[";
+        i = 0;
+        for (size_t s : shape) want += (i++ ? ", " : "") + std::to_string(s);
+        throw std::invalid_argument(std::string(name) + ": expected shape " + want + "], got " + got + "]");
+    }
+}
+
+bool is_f32(const AnyIn& a) { return a.dtype() == nb::dtype<float>(); }
+bool is_u16(const AnyIn& a) { return a.dtype() == nb::dtype<uint16_t>(); }
+
+class NativeAvatar {
+   public:
+    NativeAvatar(In<float> base, In<int32_t> row_ptr, In<int32_t> col, AnyIn vals, AnyIn pc, In<float> eyelid,
+                 In<float> lbs, In<float> joints, In<int32_t> parents, int n_face, int K, int C)
+        : base_(base), row_ptr_(row_ptr), col_(col), vals_(vals), pc_(pc), eyelid_(eyelid), lbs_(lbs),
+          joints_(joints), parents_(parents) {
+        require(base.ndim() == 2 && base.shape(1) % 16 == 0 && base.shape(1) <= 64, "base: expected [N, Dp<=64]");
+        const int n = int(base.shape(0)), dp = int(base.shape(1));
+        require(C == 1 || C == 4 || C == 9 || C == 16, "C must be 1, 4, 9 or 16");
+        require(11 + 3 * C <= dp, "base: row too short for the SH coefficients");
+        require(n_face >= 0 && n_face <= n, "n_face out of range");
+        const int J = int(joints.shape(0));
+        require_shape(joints, {size_t(J), 3}, "joints");
+        require(J >= 1 && J <= 32, "joints: 1 to 32 joints");
+        require_shape(parents, {size_t(J)}, "parents");
+        for (int j = 0; j < J; ++j)
+            require(parents.data()[j] < j && (parents.data()[j] >= 0 || j == 0), "parents must precede children");
+        require_shape(lbs, {size_t(J), size_t(n)}, "lbs");
+        require_shape(row_ptr, {size_t(n) + 1}, "row_ptr");
+        const int32_t* rp = row_ptr.data();
+        require(rp[0] == 0, "row_ptr[0] must be 0");
+        for (int i = 0; i < n; ++i) require(rp[i + 1] >= rp[i], "row_ptr must not decrease");
+        const size_t nnz = size_t(rp[n]);
+        require_shape(col, {nnz}, "col");
+        for (size_t i = 0; i < nnz; ++i) require(col.data()[i] >= 0 && col.data()[i] < K, "col out of range");
+        require(is_f32(vals) || is_u16(vals), "vals: float32 or float16 bits (uint16)");
+        require_shape(vals, {nnz, size_t(dp)}, "vals");
+        const bool half = is_u16(vals);
+        const int P = 9 * (J - 1), ppad = ((P + 15) / 16) * 16;
+        if (pc.size() > 0) {
+            require(half ? is_u16(pc) : is_f32(pc), "pc: same storage as vals");
+            require_shape(pc, {size_t(n_face), 3, size_t(ppad)}, "pc");
+        }
+        if (eyelid.size() > 0) require_shape(eyelid, {size_t(n_face), 2, 3}, "eyelid");
+        v_.n_total = n, v_.n_face = n_face, v_.K = K, v_.J = J, v_.C = C, v_.Dp = dp;
+        v_.P = P, v_.Ppad = ppad, v_.half = half;
+        v_.base = base.data(), v_.row_ptr = rp, v_.col = col.data(), v_.vals = vals.data();
+        v_.pc = pc.size() > 0 ? pc.data() : nullptr;
+        v_.eyelid = eyelid.size() > 0 ? eyelid.data() : nullptr;
+        v_.lbs = lbs.data(), v_.joints = joints.data(), v_.parents = parents.data();
+    }
+    const bs::AvatarView& view() const { return v_; }
+
+   private:
+    In<float> base_;
+    In<int32_t> row_ptr_, col_;
+    AnyIn vals_, pc_;
+    In<float> eyelid_, lbs_, joints_;
+    In<int32_t> parents_;
+    bs::AvatarView v_;
+};
+
+struct Outputs {
+    Out<float> rgb, alpha, depth;
+};
+
+std::vector<bs::Cam> make_cams(const In<float>& K, const In<float>& R, const In<float>& t, int B, int width,
+                               int height, bool antialiased) {
+    require(width >= 1 && height >= 1, "image size must be positive");
+    require_shape(K, {size_t(B), 3, 3}, "K");
+    require_shape(R, {size_t(B), 3, 3}, "R");
+    require_shape(t, {size_t(B), 3}, "t");
+    std::vector<bs::Cam> cams(B);
+    for (int b = 0; b < B; ++b) {
+        const float* k = K.data() + b * 9;
+        bs::Cam& c = cams[b];
+        c.fx = k[0], c.fy = k[4], c.cx = k[2], c.cy = k[5];
+        require(c.fx > 0 && c.fy > 0, "K: focal lengths must be positive");
+        for (int i = 0; i < 9; ++i) c.R[i] = R.data()[b * 9 + i];
+        for (int i = 0; i < 3; ++i) c.t[i] = t.data()[b * 3 + i];
+        for (int i = 0; i < 3; ++i) c.centre[i] = -(c.R[i] * c.t[0] + c.R[3 + i] * c.t[1] + c.R[6 + i] * c.t[2]);
+        c.width = width, c.height = height, c.antialiased = antialiased;
+    }
+    return cams;
+}
+
+void check_outputs(const Outputs& o, const In<float>& bg, int B, int width, int height) {
+    require_shape(bg, {size_t(B), 3}, "background");
+    require_shape(o.rgb, {size_t(B), size_t(height), size_t(width), 3}, "rgb");
+    require_shape(o.alpha, {size_t(B), size_t(height), size_t(width)}, "alpha");
+    require_shape(o.depth, {size_t(B), size_t(height), size_t(width)}, "depth");
+}
+
+int thread_count(int threads) { return threads > 0 ? threads : omp_get_max_threads(); }
+
+nb::dict timings(const bs::Timings& t, const bs::Kernels& k, int threads) {
+    nb::dict d;
+    d["blend"] = t.blend_ms, d["lbs"] = t.lbs_ms, d["raster"] = t.raster_ms, d["bin"] = t.bin_ms;
+    d["isa"] = std::string(k.name), d["threads"] = threads;
+    return d;
+}
+
+nb::dict render(const NativeAvatar& avatar, In<float> psi, In<float> rot, In<float> eyelids, In<float> K,
+                In<float> R, In<float> t, int width, int height, bool antialiased, In<float> bg, Out<float> rgb,
+                Out<float> alpha, Out<float> depth, const std::string& isa, int threads) {
+    const bs::AvatarView& av = avatar.view();
+    require(psi.ndim() == 2 && psi.shape(1) == size_t(av.K), "expression: expected [B, K]");
+    const int B = int(psi.shape(0));
+    require(B >= 1, "expression: empty batch");
+    require_shape(rot, {size_t(B), size_t(av.J), 3, 3}, "joint_rotations");
+    require_shape(eyelids, {size_t(B), 2}, "eyelids");
+    auto cams = make_cams(K, R, t, B, width, height, antialiased);
+    Outputs o{rgb, alpha, depth};
+    check_outputs(o, bg, B, width, height);
+    const bs::Kernels& k = bs::select_kernels(isa);
+    const int nt = thread_count(threads);
+    bs::Timings tm;
+    {
+        nb::gil_scoped_release release;
+        tm = bs::render_fused(av, psi.data(), rot.data(), eyelids.data(), cams.data(), B, bg.data(), rgb.data(),
+                              alpha.data(), depth.data(), k, nt);
+    }
+    return timings(tm, k, nt);
+}
+
+nb::dict rasterize(In<float> means, In<float> quats, In<float> scales, In<float> opacities, In<float> colors,
+                   In<float> K, In<float> R, In<float> t, int width, int height, bool antialiased, In<float> bg,
+                   Out<float> rgb, Out<float> alpha, Out<float> depth, const std::string& isa, int threads) {
+    require(means.ndim() == 3 && means.shape(2) == 3, "means: expected [B, N, 3]");
+    const size_t B = means.shape(0), N = means.shape(1);
+    require(B >= 1, "means: empty batch");
+    require_shape(quats, {B, N, 4}, "quats");
+    require_shape(scales, {B, N, 3}, "scales");
+    require_shape(opacities, {B, N}, "opacities");
+    require_shape(colors, {B, N, 3}, "colors");
+    auto cams = make_cams(K, R, t, int(B), width, height, antialiased);
+    Outputs o{rgb, alpha, depth};
+    check_outputs(o, bg, int(B), width, height);
+    const bs::Kernels& k = bs::select_kernels(isa);
+    const int nt = thread_count(threads);
+    bs::PosedView pv{means.data(), quats.data(), scales.data(), opacities.data(), colors.data(), int(N)};
+    bs::Timings tm;
+    {
+        nb::gil_scoped_release release;
+        tm = bs::render_posed(pv, cams.data(), int(B), bg.data(), rgb.data(), alpha.data(), depth.data(), k, nt);
+    }
+    return timings(tm, k, nt);
+}
+
+// Best-of-five parallel read of nbytes (uint64 sums): the memory bandwidth a streaming blend can reach.
+nb::dict bandwidth_probe(size_t nbytes, int threads) {
+    const int nt = thread_count(threads);
+    const size_t n = std::max<size_t>(nbytes / 8, 1);
+    std::vector<uint64_t> buf(n);
+    double best = 1e30;
+    uint64_t sink = 0;
+    {
+        nb::gil_scoped_release release;
+#pragma omp parallel for num_threads(nt) schedule(static)
+        for (size_t i = 0; i < n; ++i) buf[i] = i;
+        for (int pass = 0; pass < 5; ++pass) {
+            const double t0 = omp_get_wtime();
+            uint64_t total = 0;
+#pragma omp parallel for num_threads(nt) schedule(static) reduction(+ : total)
+            for (size_t i = 0; i < n; ++i) total += buf[i];
+            best = std::min(best, omp_get_wtime() - t0);
+            sink += total;
+        }
+    }
+    nb::dict d;
+    d["bytes"] = n * 8, d["ms"] = best * 1e3, d["gbps"] = double(n * 8) / best / 1e9, d["threads"] = nt;
+    d["checksum"] = sink;
+    return d;
+}
+
+}  // namespace
+
+NB_MODULE(_native, m) {
+    m.doc() = "Blendsplat's native CPU renderer (fused blend + skinning + tile rasterizer).";
+    nb::class_<NativeAvatar>(m, "NativeAvatar")
+        .def(nb::init<In<float>, In<int32_t>, In<int32_t>, AnyIn, AnyIn, In<float>, In<float>, In<float>,
+                      In<int32_t>, int, int, int>(),
+             "base"_a, "row_ptr"_a, "col"_a, "vals"_a, "pc"_a, "eyelid"_a, "lbs"_a, "joints"_a, "parents"_a,
+             "n_face"_a, "K"_a, "C"_a);
+    m.def("render", &render, "avatar"_a, "expression"_a, "joint_rotations"_a, "eyelids"_a, "K"_a, "R"_a, "t"_a,
+          "width"_a, "height"_a, "antialiased"_a, "background"_a, "rgb"_a, "alpha"_a, "depth"_a, "isa"_a = "auto",
+          "threads"_a = 0);
+    m.def("rasterize", &rasterize, "means"_a, "quats"_a, "scales"_a, "opacities"_a, "colors"_a, "K"_a, "R"_a, "t"_a,
+          "width"_a, "height"_a, "antialiased"_a, "background"_a, "rgb"_a, "alpha"_a, "depth"_a, "isa"_a = "auto",
+          "threads"_a = 0);
+    m.def("available_isas", &bs::available_isas, "SIMD paths this build can run here, slowest first.");
+    m.def("bandwidth_probe", &bandwidth_probe, "nbytes"_a, "threads"_a = 0);
+    m.def("max_threads", []() { return omp_get_max_threads(); });
+}

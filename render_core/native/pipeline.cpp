@@ -1,0 +1,272 @@
+// Per-frame orchestration: joint transforms, the parallel stages (blend, deform + project, raster), and the
+// depth sort and tile binning between them. Kernels come from the instruction set chosen at run time.
+#include "pipeline.hpp"
+
+#include <omp.h>
+
+#include <algorithm>
+#include <chrono>
+#include <cstring>
+#include <stdexcept>
+#include <vector>
+
+namespace bs {
+
+namespace {
+
+using Clock = std::chrono::steady_clock;
+
+double ms_since(Clock::time_point t0) {
+    return std::chrono::duration<double, std::milli>(Clock::now() - t0).count();
+}
+
+bool cpu_has(const char* isa) {
+#if defined(__x86_64__) || defined(__i386__)
+    __builtin_cpu_init();
+    if (std::strcmp(isa, "avx2") == 0)
+        return __builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma") && __builtin_cpu_supports("f16c");
+    if (std::strcmp(isa, "avx512") == 0) return __builtin_cpu_supports("avx512f");
+#endif
+    return std::strcmp(isa, "scalar") == 0;
+}
+
+// Skinning transforms A_j = A_parent [R_j | (I - R_j) J_j] (render_core.deform.joint_transforms), [J, 12].
+void joint_transforms(const AvatarView& av, const float* rot, float* A) {
+    for (int j = 0; j < av.J; ++j) {
+        const float* r = rot + j * 9;
+        const float* p = av.joints + j * 3;
+        float local[12];
+        for (int i = 0; i < 3; ++i) {
+            for (int c = 0; c < 3; ++c) local[4 * i + c] = r[3 * i + c];
+            local[4 * i + 3] = p[i] - (r[3 * i] * p[0] + r[3 * i + 1] * p[1] + r[3 * i + 2] * p[2]);
+        }
+        float* a = A + j * 12;
+        const int parent = av.parents[j];
+        if (parent < 0) {
+            std::memcpy(a, local, sizeof(local));
+            continue;
+        }
+        const float* pa = A + parent * 12;
+        for (int i = 0; i < 3; ++i) {
+            for (int c = 0; c < 4; ++c) {
+                float s = c == 3 ? pa[4 * i + 3] : 0.0f;
+                for (int k = 0; k < 3; ++k) s += pa[4 * i + k] * local[4 * k + c];
+                a[4 * i + c] = s;
+            }
+        }
+    }
+}
+
+// Stable LSD radix sort of indices by the bits of positive float keys (ties keep index order).
+void sort_by_depth(const Splat* splats, std::vector<uint32_t>& idx, std::vector<uint32_t>& tmp,
+                   std::vector<uint32_t>& keys, std::vector<uint32_t>& tmp_keys) {
+    const size_t n = idx.size();
+    keys.resize(n);
+    tmp_keys.resize(n);
+    tmp.resize(n);
+    for (size_t i = 0; i < n; ++i) std::memcpy(&keys[i], &splats[idx[i]].depth, 4);
+    const int shifts[3] = {0, 11, 22};
+    for (int pass = 0; pass < 3; ++pass) {
+        const int sh = shifts[pass];
+        uint32_t count[2048 + 1] = {0};
+        for (size_t i = 0; i < n; ++i) ++count[((keys[i] >> sh) & 2047u) + 1];
+        for (int b = 0; b < 2048; ++b) count[b + 1] += count[b];
+        for (size_t i = 0; i < n; ++i) {
+            const uint32_t dst = count[(keys[i] >> sh) & 2047u]++;
+            tmp[dst] = idx[i];
+            tmp_keys[dst] = keys[i];
+        }
+        idx.swap(tmp);
+        keys.swap(tmp_keys);
+    }
+}
+
+struct FrameBins {
+    std::vector<uint32_t> order, tmp, keys, tmp_keys, tile_offsets;
+    std::vector<uint32_t> counts;  // [threads, tiles]
+    std::vector<Splat> sorted, binned;
+};
+
+// Visible splats of one frame, depth-sorted, copied tile by tile into fb.binned (each tile's records contiguous
+// and in depth order, ties by index), so that compositing streams through memory.
+void bin_frame(const Splat* s, int n, int tiles_x, int tiles, FrameBins& fb, int threads) {
+    fb.order.clear();
+    for (int i = 0; i < n; ++i)
+        if (s[i].x0 < s[i].x1) fb.order.push_back(uint32_t(i));
+    sort_by_depth(s, fb.order, fb.tmp, fb.keys, fb.tmp_keys);
+    const int m = int(fb.order.size());
+    fb.sorted.resize(m);
+    fb.counts.assign(size_t(threads) * tiles, 0);
+    fb.tile_offsets.assign(tiles + 1, 0);
+    Splat* sorted = fb.sorted.data();
+    const uint32_t* order = fb.order.data();
+    uint32_t* counts = fb.counts.data();
+    auto tile_range = [&](const Splat& g, int& tx0, int& tx1, int& ty0, int& ty1) {
+        tx0 = int(g.x0) / kTile, tx1 = (int(g.x1) - 1) / kTile;
+        ty0 = int(g.y0) / kTile, ty1 = (int(g.y1) - 1) / kTile;
+    };
+#pragma omp parallel num_threads(threads)
+    {
+        const int t = omp_get_thread_num(), nt = omp_get_num_threads();
+        const int i0 = int(int64_t(m) * t / nt), i1 = int(int64_t(m) * (t + 1) / nt);
+        uint32_t* cnt = counts + size_t(t) * tiles;
+        for (int i = i0; i < i1; ++i) {
+            sorted[i] = s[order[i]];
+            int tx0, tx1, ty0, ty1;
+            tile_range(sorted[i], tx0, tx1, ty0, ty1);
+            for (int ty = ty0; ty <= ty1; ++ty)
+                for (int tx = tx0; tx <= tx1; ++tx) ++cnt[ty * tiles_x + tx];
+        }
+#pragma omp barrier
+#pragma omp single
+        {
+            // Per tile, thread t's records follow thread t-1's: depth order is kept.
+            uint32_t run = 0;
+            for (int tile = 0; tile < tiles; ++tile) {
+                fb.tile_offsets[tile] = run;
+                for (int u = 0; u < nt; ++u) {
+                    const uint32_t c = counts[size_t(u) * tiles + tile];
+                    counts[size_t(u) * tiles + tile] = run;
+                    run += c;
+                }
+            }
+            fb.tile_offsets[tiles] = run;
+            fb.binned.resize(run);
+        }
+        Splat* binned = fb.binned.data();
+        for (int i = i0; i < i1; ++i) {
+            int tx0, tx1, ty0, ty1;
+            tile_range(sorted[i], tx0, tx1, ty0, ty1);
+            for (int ty = ty0; ty <= ty1; ++ty)
+                for (int tx = tx0; tx <= tx1; ++tx) binned[cnt[ty * tiles_x + tx]++] = sorted[i];
+        }
+    }
+}
+
+// Depth-sort, bin and composite B frames of projected splats ([B, n] each); returns the binning time (ms).
+double rasterize_splats(const Splat* splats, int n, int B, const Cam* cams, const float* bg, float* rgb,
+                        float* alpha, float* depth, const Kernels& k, int threads) {
+    const auto t0 = Clock::now();
+    static thread_local std::vector<FrameBins> bins_tls;  // the caller's; worker threads use it by reference
+    std::vector<FrameBins>& bins = bins_tls;
+    if (int(bins.size()) < B) bins.resize(B);
+    const int W = cams[0].width, H = cams[0].height;
+    const int tiles_x = (W + kTile - 1) / kTile, tiles_y = (H + kTile - 1) / kTile, tiles = tiles_x * tiles_y;
+    for (int b = 0; b < B; ++b) bin_frame(splats + size_t(b) * n, n, tiles_x, tiles, bins[b], threads);
+    const double bin_ms = ms_since(t0);
+    const int jobs = B * tiles;
+#pragma omp parallel for num_threads(threads) schedule(dynamic, 4)
+    for (int job = 0; job < jobs; ++job) {
+        const int b = job / tiles, t = job % tiles;
+        const FrameBins& fb = bins[b];
+        const size_t pix = size_t(b) * W * H;
+        k.raster_tile(fb.binned.data() + fb.tile_offsets[t], int(fb.tile_offsets[t + 1] - fb.tile_offsets[t]),
+                      t % tiles_x, t / tiles_x, cams[b], bg + 3 * b, rgb + pix * 3, alpha + pix, depth + pix);
+    }
+    return bin_ms;
+}
+
+constexpr int kChunk = 512;  // Gaussians per parallel work item
+
+}  // namespace
+
+std::vector<std::string> available_isas() {
+    std::vector<std::string> out{"scalar"};
+#ifdef BS_HAVE_AVX2
+    if (cpu_has("avx2")) out.push_back("avx2");
+#endif
+#ifdef BS_HAVE_AVX512
+    if (cpu_has("avx512")) out.push_back("avx512");
+#endif
+    return out;
+}
+
+const Kernels& select_kernels(const std::string& isa) {
+    const auto avail = available_isas();
+    const std::string pick = isa == "auto" || isa.empty() ? avail.back() : isa;
+    if (std::find(avail.begin(), avail.end(), pick) == avail.end()) {
+        std::string msg = "SIMD path '" + isa + "' is not available on this CPU/build; available:";
+        for (const auto& a : avail) msg += " " + a;
+        throw std::invalid_argument(msg);
+    }
+#ifdef BS_HAVE_AVX512
+    if (pick == "avx512") return avx512::kernels();
+#endif
+#ifdef BS_HAVE_AVX2
+    if (pick == "avx2") return avx2::kernels();
+#endif
+    return scalar::kernels();
+}
+
+Timings render_fused(const AvatarView& av, const float* psi, const float* rot, const float* eyelids, const Cam* cams,
+                     int B, const float* bg, float* rgb, float* alpha, float* depth, const Kernels& k, int threads) {
+    Timings tm;
+    static thread_local std::vector<float> blended_tls, A_tls, pose_feat_tls;
+    static thread_local std::vector<Splat> splats_tls;
+    // References to the calling thread's buffers: inside parallel regions they name these, not the workers' own.
+    std::vector<float>&blended = blended_tls, &A = A_tls, &pose_feat = pose_feat_tls;
+    std::vector<Splat>& splats = splats_tls;
+    const size_t row = size_t(av.n_total) * av.Dp;
+    blended.resize(size_t(B) * row);
+    A.assign(size_t(B) * av.J * 12, 0.0f);
+    pose_feat.assign(size_t(B) * std::max(av.Ppad, 1), 0.0f);
+    for (int b = 0; b < B; ++b) {
+        const float* r = rot + size_t(b) * av.J * 9;
+        joint_transforms(av, r, A.data() + size_t(b) * av.J * 12);
+        for (int j = 1; j < av.J; ++j)
+            for (int e = 0; e < 9; ++e)
+                pose_feat[size_t(b) * av.Ppad + (j - 1) * 9 + e] = r[j * 9 + e] - ((e % 4 == 0) ? 1.0f : 0.0f);
+    }
+    const int chunks = (av.n_total + kChunk - 1) / kChunk;
+
+    auto t0 = Clock::now();
+    for (int b0 = 0; b0 < B; b0 += kMaxBatch) {
+        const int nb = std::min(kMaxBatch, B - b0);
+#pragma omp parallel for num_threads(threads) schedule(static)
+        for (int c = 0; c < chunks; ++c) {
+            const int n0 = c * kChunk, n1 = std::min(av.n_total, n0 + kChunk);
+            k.blend(av, psi + size_t(b0) * av.K, pose_feat.data() + size_t(b0) * av.Ppad, eyelids + size_t(b0) * 2,
+                    nb, blended.data() + size_t(b0) * row, n0, n1);
+        }
+    }
+    tm.blend_ms = ms_since(t0);
+
+    t0 = Clock::now();
+    splats.resize(size_t(B) * av.n_total);
+#pragma omp parallel for num_threads(threads) schedule(static)
+    for (int job = 0; job < B * chunks; ++job) {
+        const int b = job / chunks, c = job % chunks;
+        const int n0 = c * kChunk, n1 = std::min(av.n_total, n0 + kChunk);
+        k.deform_project(av, blended.data() + size_t(b) * row, A.data() + size_t(b) * av.J * 12, cams[b],
+                         splats.data() + size_t(b) * av.n_total, n0, n1);
+    }
+    tm.lbs_ms = ms_since(t0);
+
+    t0 = Clock::now();
+    tm.bin_ms = rasterize_splats(splats.data(), av.n_total, B, cams, bg, rgb, alpha, depth, k, threads);
+    tm.raster_ms = ms_since(t0);
+    return tm;
+}
+
+Timings render_posed(const PosedView& pv, const Cam* cams, int B, const float* bg, float* rgb, float* alpha,
+                     float* depth, const Kernels& k, int threads) {
+    Timings tm;
+    static thread_local std::vector<Splat> splats_tls;
+    std::vector<Splat>& splats = splats_tls;
+    splats.resize(size_t(B) * pv.N);
+    const int chunks = (pv.N + kChunk - 1) / kChunk;
+    auto t0 = Clock::now();
+#pragma omp parallel for num_threads(threads) schedule(static)
+    for (int job = 0; job < B * chunks; ++job) {
+        const int b = job / chunks, c = job % chunks;
+        const int n0 = c * kChunk, n1 = std::min(pv.N, n0 + kChunk);
+        k.project_posed(pv, b, cams[b], splats.data() + size_t(b) * pv.N, n0, n1);
+    }
+    tm.lbs_ms = ms_since(t0);
+    t0 = Clock::now();
+    tm.bin_ms = rasterize_splats(splats.data(), pv.N, B, cams, bg, rgb, alpha, depth, k, threads);
+    tm.raster_ms = ms_since(t0);
+    return tm;
+}
+
+}  // namespace bs

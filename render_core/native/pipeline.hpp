@@ -1,0 +1,30 @@
+// The native renderer's entry points (used by module.cpp).
+#pragma once
+
+#include <string>
+#include <vector>
+
+#include "common.hpp"
+
+namespace bs {
+
+struct Timings {
+    double blend_ms = 0.0, lbs_ms = 0.0, raster_ms = 0.0;
+    double bin_ms = 0.0;  // part of raster_ms: depth sort and tile binning
+};
+
+// SIMD paths this build can run on this CPU, slowest first ("scalar", then "avx2", "avx512").
+std::vector<std::string> available_isas();
+// "auto" picks the fastest; an unavailable name throws std::invalid_argument listing the available ones.
+const Kernels& select_kernels(const std::string& isa);
+
+// B frames of one avatar: psi [B, K], rot [B, J, 3, 3], eyelids [B, 2], cams [B], bg [B, 3];
+// outputs rgb [B, H, W, 3], alpha [B, H, W], depth [B, H, W].
+Timings render_fused(const AvatarView& av, const float* psi, const float* rot, const float* eyelids, const Cam* cams,
+                     int B, const float* bg, float* rgb, float* alpha, float* depth, const Kernels& k, int threads);
+
+// B frames of already posed Gaussians (colours evaluated).
+Timings render_posed(const PosedView& pv, const Cam* cams, int B, const float* bg, float* rgb, float* alpha,
+                     float* depth, const Kernels& k, int threads);
+
+}  // namespace bs

@@ -1,0 +1,263 @@
+// Thin SIMD wrappers: one kernel source (kernels.inl) is compiled once per instruction set with V = Scalar,
+// Avx2 or Avx512. Each wrapper provides a float vector F (W lanes), a lane mask M, and the handful of operations
+// the kernels need. exp/log are Cephes-style polynomial approximations (about 1 ulp) in the vector paths and
+// the C library's in the scalar path.
+#pragma once
+
+#include <cmath>
+#include <cstdint>
+#include <cstring>
+
+#if defined(BS_ISA_AVX2) || defined(BS_ISA_AVX512)
+#include <immintrin.h>
+#endif
+
+namespace bs {
+
+inline float half_to_float(uint16_t h) {
+    const uint32_t sign = uint32_t(h & 0x8000u) << 16;
+    uint32_t exp = (h >> 10) & 0x1fu;
+    uint32_t mant = h & 0x3ffu;
+    uint32_t bits;
+    if (exp == 0) {
+        if (mant == 0) {
+            bits = sign;
+        } else {  // subnormal half: normalise
+            exp = 127 - 15 + 1;
+            while ((mant & 0x400u) == 0) {
+                mant <<= 1;
+                --exp;
+            }
+            mant &= 0x3ffu;
+            bits = sign | (exp << 23) | (mant << 13);
+        }
+    } else if (exp == 0x1f) {
+        bits = sign | 0x7f800000u | (mant << 13);
+    } else {
+        bits = sign | ((exp - 15 + 127) << 23) | (mant << 13);
+    }
+    float f;
+    std::memcpy(&f, &bits, 4);
+    return f;
+}
+
+// Cephes constants (expf, logf).
+constexpr float kExpHi = 88.3762626647949f, kExpLo = -88.3762626647949f;
+constexpr float kLog2e = 1.44269504088896341f, kExpC1 = 0.693359375f, kExpC2 = -2.12194440e-4f;
+constexpr float kExpP0 = 1.9875691500e-4f, kExpP1 = 1.3981999507e-3f, kExpP2 = 8.3334519073e-3f,
+                kExpP3 = 4.1665795894e-2f, kExpP4 = 1.6666665459e-1f, kExpP5 = 5.0000001201e-1f;
+constexpr float kSqrtHalf = 0.707106781186547524f;
+constexpr float kLogP[9] = {7.0376836292e-2f, -1.1514610310e-1f, 1.1676998740e-1f, -1.2420140846e-1f,
+                            1.4249322787e-1f, -1.6668057665e-1f, 2.0000714765e-1f, -2.4999993993e-1f,
+                            3.3333331174e-1f};
+
+struct Scalar {
+    static constexpr int W = 1;
+    static constexpr const char* name = "scalar";
+    using F = float;
+    using M = bool;
+    static F set1(float x) { return x; }
+    static F load(const float* p) { return *p; }
+    static F load(const uint16_t* p) { return half_to_float(*p); }
+    static void store(float* p, F a) { *p = a; }
+    static F iota() { return 0.0f; }
+    static F fma(F a, F b, F c) { return a * b + c; }
+    static F min(F a, F b) { return a < b ? a : b; }
+    static F max(F a, F b) { return a > b ? a : b; }
+    static F sqrt(F a) { return std::sqrt(a); }
+    static F floor(F a) { return std::floor(a); }
+    static F ceil(F a) { return std::ceil(a); }
+    static F exp(F a) { return std::exp(a); }
+    static F log(F a) { return std::log(a); }
+    static F abs(F a) { return std::fabs(a); }
+    static M lt(F a, F b) { return a < b; }
+    static M le(F a, F b) { return a <= b; }
+    static M ge(F a, F b) { return a >= b; }
+    static M gt(F a, F b) { return a > b; }
+    static M mand(M a, M b) { return a && b; }
+    static M mor(M a, M b) { return a || b; }
+    static M mandnot(M a, M b) { return !a && b; }  // (not a) and b
+    static M mload(const uint32_t* p) { return *p != 0; }
+    static void mstore(uint32_t* p, M m) { *p = m ? 1u : 0u; }
+    static bool any(M m) { return m; }
+    static int count(M m) { return m ? 1 : 0; }
+    static F select(M m, F a, F b) { return m ? a : b; }
+    static float hsum(F a) { return a; }
+};
+
+#if defined(BS_ISA_AVX2)
+struct Avx2 {
+    static constexpr int W = 8;
+    static constexpr const char* name = "avx2";
+    struct F {
+        __m256 v;
+        F() = default;
+        F(__m256 x) : v(x) {}
+        friend F operator+(F a, F b) { return _mm256_add_ps(a.v, b.v); }
+        friend F operator-(F a, F b) { return _mm256_sub_ps(a.v, b.v); }
+        friend F operator*(F a, F b) { return _mm256_mul_ps(a.v, b.v); }
+        friend F operator/(F a, F b) { return _mm256_div_ps(a.v, b.v); }
+        friend F operator-(F a) { return _mm256_xor_ps(a.v, _mm256_set1_ps(-0.0f)); }
+        F& operator+=(F b) { v = _mm256_add_ps(v, b.v); return *this; }
+        F& operator*=(F b) { v = _mm256_mul_ps(v, b.v); return *this; }
+    };
+    struct M {
+        __m256 v;
+    };
+    static F set1(float x) { return _mm256_set1_ps(x); }
+    static F load(const float* p) { return _mm256_loadu_ps(p); }
+    static F load(const uint16_t* p) {
+        return _mm256_cvtph_ps(_mm_loadu_si128(reinterpret_cast<const __m128i*>(p)));
+    }
+    static void store(float* p, F a) { _mm256_storeu_ps(p, a.v); }
+    static F iota() { return _mm256_setr_ps(0, 1, 2, 3, 4, 5, 6, 7); }
+    static F fma(F a, F b, F c) { return _mm256_fmadd_ps(a.v, b.v, c.v); }
+    static F min(F a, F b) { return _mm256_min_ps(a.v, b.v); }
+    static F max(F a, F b) { return _mm256_max_ps(a.v, b.v); }
+    static F sqrt(F a) { return _mm256_sqrt_ps(a.v); }
+    static F floor(F a) { return _mm256_floor_ps(a.v); }
+    static F ceil(F a) { return _mm256_ceil_ps(a.v); }
+    static F abs(F a) { return _mm256_andnot_ps(_mm256_set1_ps(-0.0f), a.v); }
+    static M lt(F a, F b) { return {_mm256_cmp_ps(a.v, b.v, _CMP_LT_OQ)}; }
+    static M le(F a, F b) { return {_mm256_cmp_ps(a.v, b.v, _CMP_LE_OQ)}; }
+    static M ge(F a, F b) { return {_mm256_cmp_ps(a.v, b.v, _CMP_GE_OQ)}; }
+    static M gt(F a, F b) { return {_mm256_cmp_ps(a.v, b.v, _CMP_GT_OQ)}; }
+    static M mand(M a, M b) { return {_mm256_and_ps(a.v, b.v)}; }
+    static M mor(M a, M b) { return {_mm256_or_ps(a.v, b.v)}; }
+    static M mandnot(M a, M b) { return {_mm256_andnot_ps(a.v, b.v)}; }
+    static M mload(const uint32_t* p) {
+        return {_mm256_castsi256_ps(
+            _mm256_cmpgt_epi32(_mm256_loadu_si256(reinterpret_cast<const __m256i*>(p)), _mm256_setzero_si256()))};
+    }
+    static void mstore(uint32_t* p, M m) {
+        _mm256_storeu_si256(reinterpret_cast<__m256i*>(p),
+                            _mm256_and_si256(_mm256_castps_si256(m.v), _mm256_set1_epi32(1)));
+    }
+    static bool any(M m) { return _mm256_movemask_ps(m.v) != 0; }
+    static int count(M m) { return __builtin_popcount(unsigned(_mm256_movemask_ps(m.v))); }
+    static F select(M m, F a, F b) { return _mm256_blendv_ps(b.v, a.v, m.v); }
+    static float hsum(F a) {
+        __m128 s = _mm_add_ps(_mm256_castps256_ps128(a.v), _mm256_extractf128_ps(a.v, 1));
+        s = _mm_add_ps(s, _mm_movehl_ps(s, s));
+        s = _mm_add_ss(s, _mm_movehdup_ps(s));
+        return _mm_cvtss_f32(s);
+    }
+    static F exp(F x) {
+        x = min(max(x, set1(kExpLo)), set1(kExpHi));
+        F fx = floor(fma(x, set1(kLog2e), set1(0.5f)));
+        x = x - fx * set1(kExpC1) - fx * set1(kExpC2);
+        F z = x * x;
+        F y = fma(set1(kExpP0), x, set1(kExpP1));
+        y = fma(y, x, set1(kExpP2));
+        y = fma(y, x, set1(kExpP3));
+        y = fma(y, x, set1(kExpP4));
+        y = fma(y, x, set1(kExpP5));
+        y = fma(y, z, x + set1(1.0f));
+        __m256i e = _mm256_slli_epi32(_mm256_add_epi32(_mm256_cvttps_epi32(fx.v), _mm256_set1_epi32(127)), 23);
+        return y * F(_mm256_castsi256_ps(e));
+    }
+    static F log(F x) {  // x > 0
+        __m256i bits = _mm256_castps_si256(x.v);
+        __m256i e = _mm256_sub_epi32(_mm256_srli_epi32(bits, 23), _mm256_set1_epi32(126));
+        F m(_mm256_castsi256_ps(_mm256_or_si256(_mm256_and_si256(bits, _mm256_set1_epi32(0x007fffff)),
+                                                 _mm256_set1_epi32(0x3f000000))));  // [0.5, 1)
+        F ef(_mm256_cvtepi32_ps(e));
+        M small = lt(m, set1(kSqrtHalf));
+        ef = select(small, ef - set1(1.0f), ef);
+        m = select(small, m + m, m) - set1(1.0f);
+        F z = m * m;
+        F y = set1(kLogP[0]);
+        for (int i = 1; i < 9; ++i) y = fma(y, m, set1(kLogP[i]));
+        y = y * m * z;
+        y = fma(ef, set1(kExpC2), y);
+        y = fma(set1(-0.5f), z, y);
+        return fma(ef, set1(kExpC1), m + y);
+    }
+};
+#endif
+
+#if defined(BS_ISA_AVX512)
+struct Avx512 {
+    static constexpr int W = 16;
+    static constexpr const char* name = "avx512";
+    struct F {
+        __m512 v;
+        F() = default;
+        F(__m512 x) : v(x) {}
+        friend F operator+(F a, F b) { return _mm512_add_ps(a.v, b.v); }
+        friend F operator-(F a, F b) { return _mm512_sub_ps(a.v, b.v); }
+        friend F operator*(F a, F b) { return _mm512_mul_ps(a.v, b.v); }
+        friend F operator/(F a, F b) { return _mm512_div_ps(a.v, b.v); }
+        friend F operator-(F a) { return _mm512_sub_ps(_mm512_setzero_ps(), a.v); }
+        F& operator+=(F b) { v = _mm512_add_ps(v, b.v); return *this; }
+        F& operator*=(F b) { v = _mm512_mul_ps(v, b.v); return *this; }
+    };
+    struct M {
+        __mmask16 k;
+    };
+    static F set1(float x) { return _mm512_set1_ps(x); }
+    static F load(const float* p) { return _mm512_loadu_ps(p); }
+    static F load(const uint16_t* p) {
+        return _mm512_cvtph_ps(_mm256_loadu_si256(reinterpret_cast<const __m256i*>(p)));
+    }
+    static void store(float* p, F a) { _mm512_storeu_ps(p, a.v); }
+    static F iota() { return _mm512_setr_ps(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15); }
+    static F fma(F a, F b, F c) { return _mm512_fmadd_ps(a.v, b.v, c.v); }
+    static F min(F a, F b) { return _mm512_min_ps(a.v, b.v); }
+    static F max(F a, F b) { return _mm512_max_ps(a.v, b.v); }
+    static F sqrt(F a) { return _mm512_sqrt_ps(a.v); }
+    static F floor(F a) { return _mm512_roundscale_ps(a.v, _MM_FROUND_TO_NEG_INF | _MM_FROUND_NO_EXC); }
+    static F ceil(F a) { return _mm512_roundscale_ps(a.v, _MM_FROUND_TO_POS_INF | _MM_FROUND_NO_EXC); }
+    static F abs(F a) { return _mm512_abs_ps(a.v); }
+    static M lt(F a, F b) { return {_mm512_cmp_ps_mask(a.v, b.v, _CMP_LT_OQ)}; }
+    static M le(F a, F b) { return {_mm512_cmp_ps_mask(a.v, b.v, _CMP_LE_OQ)}; }
+    static M ge(F a, F b) { return {_mm512_cmp_ps_mask(a.v, b.v, _CMP_GE_OQ)}; }
+    static M gt(F a, F b) { return {_mm512_cmp_ps_mask(a.v, b.v, _CMP_GT_OQ)}; }
+    static M mand(M a, M b) { return {__mmask16(a.k & b.k)}; }
+    static M mor(M a, M b) { return {__mmask16(a.k | b.k)}; }
+    static M mandnot(M a, M b) { return {__mmask16(~a.k & b.k)}; }
+    static M mload(const uint32_t* p) {
+        return {_mm512_cmpneq_epi32_mask(_mm512_loadu_si512(p), _mm512_setzero_si512())};
+    }
+    static void mstore(uint32_t* p, M m) {
+        _mm512_storeu_si512(p, _mm512_maskz_mov_epi32(m.k, _mm512_set1_epi32(1)));
+    }
+    static bool any(M m) { return m.k != 0; }
+    static int count(M m) { return __builtin_popcount(unsigned(m.k)); }
+    static F select(M m, F a, F b) { return _mm512_mask_blend_ps(m.k, b.v, a.v); }
+    static float hsum(F a) { return _mm512_reduce_add_ps(a.v); }
+    static F exp(F x) {
+        x = min(max(x, set1(kExpLo)), set1(kExpHi));
+        F fx = floor(fma(x, set1(kLog2e), set1(0.5f)));
+        x = x - fx * set1(kExpC1) - fx * set1(kExpC2);
+        F z = x * x;
+        F y = fma(set1(kExpP0), x, set1(kExpP1));
+        y = fma(y, x, set1(kExpP2));
+        y = fma(y, x, set1(kExpP3));
+        y = fma(y, x, set1(kExpP4));
+        y = fma(y, x, set1(kExpP5));
+        y = fma(y, z, x + set1(1.0f));
+        __m512i e = _mm512_slli_epi32(_mm512_add_epi32(_mm512_cvttps_epi32(fx.v), _mm512_set1_epi32(127)), 23);
+        return y * F(_mm512_castsi512_ps(e));
+    }
+    static F log(F x) {
+        __m512i bits = _mm512_castps_si512(x.v);
+        __m512i e = _mm512_sub_epi32(_mm512_srli_epi32(bits, 23), _mm512_set1_epi32(126));
+        F m(_mm512_castsi512_ps(_mm512_or_si512(_mm512_and_si512(bits, _mm512_set1_epi32(0x007fffff)),
+                                                 _mm512_set1_epi32(0x3f000000))));
+        F ef(_mm512_cvtepi32_ps(e));
+        M small = lt(m, set1(kSqrtHalf));
+        ef = select(small, ef - set1(1.0f), ef);
+        m = select(small, m + m, m) - set1(1.0f);
+        F z = m * m;
+        F y = set1(kLogP[0]);
+        for (int i = 1; i < 9; ++i) y = fma(y, m, set1(kLogP[i]));
+        y = y * m * z;
+        y = fma(ef, set1(kExpC2), y);
+        y = fma(set1(-0.5f), z, y);
+        return fma(ef, set1(kExpC1), m + y);
+    }
+};
+#endif
+
+}  // namespace bs

@@ -1,0 +1,223 @@
+"""The native CPU backend: a C++ extension (render_core/native/, nanobind + OpenMP) with scalar, AVX2 and AVX-512
+kernels chosen at run time. ``BLENDSPLAT_SIMD=scalar|avx2|avx512`` forces one path (an unavailable one is an
+error naming the available ones).
+
+Two entry points share the kernels:
+  - :func:`rasterize`: posed Gaussians with evaluated colours (the ``render()`` backend, tested against the
+    reference rasterizer);
+  - :class:`NativeAvatar`: an avatar packed once for streaming reads - neutral rows and the (Gaussian,
+    blendshape) pairs that are not zero, CSR by Gaussian, in fp32 or fp16 - rendered by the fused per-frame
+    pipeline (blend, pose correctives, eyelids, LBS, SH colour, projection, tile binning, depth sort,
+    compositing) for B frames in one call.
+Arrays cross into C++ as numpy views of contiguous CPU float32 tensors: no copies.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..avatar import Avatar, Gaussians, sh_coeff_count
+from ..camera import Cameras
+from ..errors import ShapeError
+
+try:
+    from .. import _native
+except ImportError as e:  # a source tree without the compiled extension
+    _native = None
+    IMPORT_ERROR: str | None = str(e)
+else:
+    IMPORT_ERROR = None
+
+PRECISIONS = ("fp32", "fp16")
+
+
+def available() -> bool:
+    return _native is not None
+
+
+def _require() -> None:
+    if _native is None:
+        raise RuntimeError(f"the native backend is not built ({IMPORT_ERROR}); reinstall the package")
+
+
+def simd_paths() -> list[str]:
+    """SIMD paths this build can execute on this CPU, slowest first."""
+    _require()
+    return list(_native.available_isas())
+
+
+def simd_choice(simd: str | None = None) -> str:
+    """The SIMD path to use: ``simd`` if given, else ``BLENDSPLAT_SIMD``, else "auto" (the fastest)."""
+    choice = simd or os.environ.get("BLENDSPLAT_SIMD", "auto") or "auto"
+    if choice != "auto" and choice not in ("scalar", "avx2", "avx512"):
+        raise ValueError(f"BLENDSPLAT_SIMD must be scalar, avx2, avx512 or auto, got {choice!r}")
+    return choice
+
+
+def _np(t: Tensor, dtype=torch.float32) -> np.ndarray:
+    """A contiguous CPU numpy view (a copy only when the tensor is not already float32, CPU and contiguous)."""
+    return t.detach().to(device="cpu", dtype=dtype).contiguous().numpy()
+
+
+def _check_finite(name: str, *tensors: Tensor) -> None:
+    for t in tensors:
+        if not torch.isfinite(t).all():
+            raise ShapeError("must be finite (no NaN or Inf)", field=name)
+
+
+def _outputs(b: int, h: int, w: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    return (np.empty((b, h, w, 3), np.float32), np.empty((b, h, w), np.float32), np.empty((b, h, w), np.float32))
+
+
+def _background(background: Tensor | None, b: int) -> np.ndarray:
+    if background is None:
+        return np.zeros((b, 3), np.float32)
+    return np.ascontiguousarray(np.broadcast_to(_np(background).reshape(-1, 3), (b, 3)))
+
+
+def _camera_arrays(cameras: Cameras) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    return _np(cameras.K), _np(cameras.R), _np(cameras.t)
+
+
+def rasterize(
+    means: Tensor,  # [B, N, 3]
+    quats: Tensor,  # [B, N, 4] wxyz
+    scales: Tensor,  # [B, N, 3]
+    opacities: Tensor,  # [B, N]
+    colors: Tensor,  # [B, N, 3]
+    cameras: Cameras,  # B cameras
+    background: Tensor | None = None,  # [B, 3] or [3]
+    mode: str = "classic",
+    *,
+    simd: str | None = None,
+    threads: int = 0,
+) -> tuple[Tensor, Tensor, Tensor, dict]:
+    """Splat posed Gaussians exactly as :func:`render_core.raster.reference.rasterize` (METHOD.md section 9).
+
+    Returns rgb [B, H, W, 3], alpha [B, H, W], depth [B, H, W] and the stage timings. No autograd.
+    """
+    _require()
+    if mode not in ("classic", "antialiased"):
+        raise ValueError(f"raster mode must be 'classic' or 'antialiased', got {mode!r}")
+    b = means.shape[0]
+    _check_finite("splats", means, quats, scales, opacities, colors)
+    rgb, alpha, depth = _outputs(b, cameras.height, cameras.width)
+    K, R, t = _camera_arrays(cameras)
+    timings = _native.rasterize(_np(means), _np(quats), _np(scales), _np(opacities), _np(colors), K, R, t,
+                                cameras.width, cameras.height, mode == "antialiased", _background(background, b),
+                                rgb, alpha, depth, simd_choice(simd), threads)
+    return torch.from_numpy(rgb), torch.from_numpy(alpha), torch.from_numpy(depth), dict(timings)
+
+
+def _rows(g: Gaussians, dp: int, dtype: torch.dtype) -> Tensor:
+    """[..., n, Dp] packed rows: position, quaternion, log-scale, opacity logit, SH (coefficient-major), zeros."""
+    lead = g.means.shape[:-1]
+    parts = [g.means, g.quats, g.log_scales, g.opacity_logits[..., None], g.sh.reshape(*lead, -1)]
+    rows = torch.cat([p.to(torch.float32) for p in parts], dim=-1)
+    return torch.nn.functional.pad(rows, (0, dp - rows.shape[-1])).to(dtype)
+
+
+def _ceil16(x: int) -> int:
+    return (x + 15) // 16 * 16
+
+
+@dataclass
+class PackStats:
+    """What packing kept: stored (Gaussian, blendshape) pairs and the bytes one frame's blend streams."""
+
+    pairs_stored: int
+    pairs_total: int
+    blend_bytes: int
+    precision: str
+
+    @property
+    def stored_fraction(self) -> float:
+        return self.pairs_stored / self.pairs_total if self.pairs_total else 0.0
+
+
+class NativeAvatar:
+    """An avatar packed for the native fused pipeline (once per avatar; the packed arrays stay in memory)."""
+
+    def __init__(self, avatar: Avatar, precision: str | None = None):
+        _require()
+        if precision is None:
+            precision = "fp16" if avatar.dtype == torch.float16 else "fp32"
+        if precision not in PRECISIONS:
+            raise ValueError(f"precision must be one of {PRECISIONS}, got {precision!r}")
+        store = torch.float16 if precision == "fp16" else torch.float32
+        n, k, j, m = avatar.num_gaussians, avatar.num_expressions, avatar.num_joints, avatar.num_mouth
+        c = sh_coeff_count(avatar.sh_degree)
+        dp = _ceil16(11 + 3 * c)
+        base = torch.cat([_rows(avatar.neutral, dp, torch.float32), _rows(avatar.mouth, dp, torch.float32)])
+        deltas = _rows(avatar.deltas, dp, store).transpose(0, 1)  # [N, K, Dp]
+        stored = (deltas != 0).any(-1)  # [N, K]: pairs that change anything
+        if bool(stored.all()):
+            vals, col = deltas.reshape(n * k, dp), torch.arange(k).repeat(n)
+        else:
+            vals, col = deltas[stored], stored.nonzero()[:, 1]
+        counts = torch.cat([stored.sum(1), torch.zeros(m, dtype=torch.long)])
+        row_ptr = torch.cat([torch.zeros(1, dtype=torch.long), counts.cumsum(0)])
+        if int(row_ptr[-1]) >= 2**31:
+            raise ValueError("too many stored blendshape pairs for the native backend (2^31)")
+        p = 9 * (j - 1)
+        if avatar.pose_correctives is not None and p > 0:
+            pc = avatar.pose_correctives.to(torch.float32).permute(1, 2, 0)  # [N, 3, P]
+            pc = torch.nn.functional.pad(pc, (0, _ceil16(p) - p)).to(store).contiguous()
+        else:
+            pc = torch.zeros(0, dtype=store)
+        eyelid = (avatar.eyelid_offsets.to(torch.float32).permute(1, 0, 2).contiguous()
+                  if avatar.eyelid_offsets is not None else torch.zeros(0))
+        mouth_joint = torch.tensor([avatar.joint_index(nm) for nm in avatar.mouth_joint_names])[avatar.mouth_group]
+        lbs = torch.cat([avatar.lbs_weights.to(torch.float32), torch.nn.functional.one_hot(mouth_joint, j).float()])
+
+        def bits(t: Tensor) -> np.ndarray:  # fp16 crosses as its uint16 bits
+            return t.contiguous().view(torch.int16).numpy().view(np.uint16) if t.dtype == torch.float16 else _np(t)
+
+        self._arrays = dict(
+            base=_np(base), row_ptr=_np(row_ptr, torch.int32), col=_np(col, torch.int32), vals=bits(vals),
+            pc=bits(pc), eyelid=_np(eyelid), lbs=np.ascontiguousarray(_np(lbs).T), joints=_np(avatar.joint_positions),
+            parents=np.asarray(avatar.joint_parents, dtype=np.int32),
+        )
+        self.handle = _native.NativeAvatar(**self._arrays, n_face=n, K=k, C=c)
+        self.avatar = avatar
+        self.stats = PackStats(
+            pairs_stored=int(row_ptr[-1]), pairs_total=n * k,
+            blend_bytes=int(sum(self._arrays[key].nbytes for key in ("base", "vals", "pc", "col", "row_ptr"))),
+            precision=precision,
+        )
+
+    def render(
+        self,
+        expression: Tensor,  # [B, K]
+        joint_rotations: Tensor,  # [B, J, 3, 3]
+        eyelids: Tensor | None,  # [B, 2]
+        cameras: Cameras,  # B cameras
+        background: Tensor | None = None,  # [B, 3] or [3]
+        *,
+        simd: str | None = None,
+        threads: int = 0,
+    ) -> tuple[Tensor, Tensor, Tensor, dict]:
+        """Fused blend + skinning + splatting of B frames; rgb, alpha, depth and per-stage timings (ms)."""
+        b = expression.shape[0]
+        if len(cameras) != b:
+            raise ShapeError(f"{b} frames need {b} cameras, got {len(cameras)}", field="cameras")
+        if eyelids is None:
+            eyelids = torch.zeros(b, 2)
+        _check_finite("frame", expression, joint_rotations, eyelids)
+        rgb, alpha, depth = _outputs(b, cameras.height, cameras.width)
+        K, R, t = _camera_arrays(cameras)
+        timings = _native.render(self.handle, _np(expression), _np(joint_rotations), _np(eyelids), K, R, t,
+                                 cameras.width, cameras.height, self.avatar.raster_mode == "antialiased",
+                                 _background(background, b), rgb, alpha, depth, simd_choice(simd), threads)
+        return torch.from_numpy(rgb), torch.from_numpy(alpha), torch.from_numpy(depth), dict(timings)
+
+
+def bandwidth_probe(nbytes: int, threads: int = 0) -> dict:
+    """Read ``nbytes`` from memory with all threads (best of several passes): the bound a streaming blend meets."""
+    _require()
+    return dict(_native.bandwidth_probe(int(nbytes), threads))
