@@ -1,13 +1,17 @@
-"""``blendsplat bench render``: end-to-end frame time of blend + LBS + rasterization, per stage.
+"""``blendsplat bench render``: end-to-end frame time of blend + LBS + rasterization, per stage, as JSON.
 
 Rules: every timed frame gets fresh random expression coefficients and a fresh random pose (nothing can be cached
 between frames), and the head is framed to cover 40-60% of the image (the focal length is calibrated on the
-neutral frame before timing). Times are wall-clock medians over the timed frames.
+neutral frame before timing). Times are medians over the timed frames; ``total`` is the wall-clock time of the
+whole render call. For a non-reference backend the same run also times the reference backend on the same avatar
+and camera (``vs_reference``), and for the native backend a memory-bandwidth probe reads as many bytes as one
+blend streams, so the blend is reported against that bound.
 """
 
 from __future__ import annotations
 
 import math
+import os
 import platform
 import statistics
 import time
@@ -16,8 +20,9 @@ import torch
 
 from .avatar import Avatar
 from .camera import Cameras, orbit
-from .deform import Frame, blend, skin
-from .raster import render
+from .deform import Frame
+from .raster import native
+from .renderer import AvatarRenderer
 from .synth import synth_avatar
 
 TARGET_COVERAGE = 0.5
@@ -28,17 +33,16 @@ def coverage(alpha: torch.Tensor) -> float:
     return float((alpha > 0.5).float().mean())
 
 
-def framed_camera(avatar: Avatar, size: int, backend: str = "reference", probe: int = 128) -> Cameras:
+def framed_camera(avatar: Avatar, size: int, probe: int = 128) -> Cameras:
     """A front camera whose focal length makes the neutral head cover about half of the image."""
     focal = 2.2 * probe
-    with torch.no_grad():
-        splats = skin(avatar, blend(avatar, torch.zeros(1, avatar.num_expressions)), Frame.neutral(avatar))
-        for _ in range(4):
-            cam = orbit(0.0, width=probe, height=probe, focal=focal)
-            cov = coverage(render(splats, cam, backend=backend, mode=avatar.raster_mode).alpha)
-            if abs(cov - TARGET_COVERAGE) < 0.03:
-                break
-            focal *= math.sqrt(TARGET_COVERAGE / max(cov, 1e-3))
+    renderer = AvatarRenderer(avatar)
+    neutral = Frame.neutral(avatar)
+    for _ in range(5):
+        cov = coverage(renderer.render(neutral, orbit(0.0, width=probe, height=probe, focal=focal)).alpha)
+        if abs(cov - TARGET_COVERAGE) < 0.03:
+            break
+        focal *= math.sqrt(TARGET_COVERAGE / max(cov, 1e-3))
     return orbit(0.0, width=size, height=size, focal=focal * size / probe)
 
 
@@ -56,50 +60,55 @@ def random_frames(avatar: Avatar, batch: int, g: torch.Generator) -> Frame:
     return Frame.from_params(avatar, expression=expression, joints=joints, eyelids=eyelids)
 
 
+def _time_frames(renderer: AvatarRenderer, cams: Cameras, frames: int, warmup: int, g: torch.Generator) -> dict:
+    stages: dict[str, list[float]] = {"blend": [], "lbs": [], "raster": [], "total": []}
+    covs: list[float] = []
+    timings: dict = {}
+    for i in range(warmup + frames):
+        frame = random_frames(renderer.avatar, len(cams), g)
+        t0 = time.perf_counter()
+        out = renderer.render(frame, cams)
+        total = (time.perf_counter() - t0) * 1e3
+        if i < warmup:
+            continue
+        timings = out.timings or {}
+        for key in ("blend", "lbs", "raster"):
+            stages[key].append(float(timings.get(key, 0.0)))
+        stages["total"].append(total)
+        covs.append(coverage(out.alpha))
+    return {"ms": {k: round(statistics.median(v), 3) for k, v in stages.items()},
+            "coverage": round(statistics.mean(covs), 4), "last_timings": timings}
+
+
 def bench_render(
-    backend: str = "reference",
+    backend: str | None = None,
     gaussians: int = 10_000,
     blendshapes: int = 50,
     size: int = 512,
     streams: int = 1,
-    frames: int = 5,
-    warmup: int = 1,
+    frames: int = 10,
+    warmup: int = 2,
     sh_degree: int = 3,
-    precision: str = "fp32",
+    precision: str = "fp16",
     seed: int = 0,
     avatar: Avatar | None = None,
+    reference_frames: int = 2,
+    threads: int = 0,
 ) -> dict:
     """Time ``frames`` frames (after ``warmup``) of ``streams`` batched streams; returns the JSON report."""
     if avatar is None:
         avatar = synth_avatar(gaussians, blendshapes, seed=seed, sh_degree=sh_degree)
         if precision == "fp16":
             avatar = avatar.to(torch.float16)
-    camera = framed_camera(avatar, size)
-    cams = Cameras(camera.K.expand(streams, 3, 3), camera.R.expand(streams, 3, 3), camera.t.expand(streams, 3),
-                   size, size)
+    renderer = AvatarRenderer(avatar, backend, threads=threads)
+    cams = framed_camera(avatar, size).expand(streams)
     g = torch.Generator().manual_seed(seed + 1)
-    stages: dict[str, list[float]] = {"blend": [], "lbs": [], "raster": [], "total": []}
-    covs = []
-    with torch.no_grad():
-        for i in range(warmup + frames):
-            frame = random_frames(avatar, streams, g)
-            t0 = time.perf_counter()
-            blended = blend(avatar, frame.expression)
-            t1 = time.perf_counter()
-            splats = skin(avatar, blended, frame)
-            t2 = time.perf_counter()
-            out = render(splats, cams, backend=backend, mode=avatar.raster_mode)
-            t3 = time.perf_counter()
-            if i < warmup:
-                continue
-            for key, dt in (("blend", t1 - t0), ("lbs", t2 - t1), ("raster", t3 - t2), ("total", t3 - t0)):
-                stages[key].append(dt * 1000.0)
-            covs.append(coverage(out.alpha))
-    ms = {k: round(statistics.median(v), 3) for k, v in stages.items()}
+    timed = _time_frames(renderer, cams, frames, warmup, g)
+    ms = timed["ms"]
     fps = 1000.0 / ms["total"]
-    return {
+    report = {
         "benchmark": "render",
-        "backend": backend,
+        "backend": renderer.backend,
         "gaussians": avatar.num_gaussians,
         "mouth_gaussians": avatar.num_mouth,
         "blendshapes": avatar.num_expressions,
@@ -108,15 +117,41 @@ def bench_render(
         "sh_degree": avatar.sh_degree,
         "precision": "fp16" if avatar.dtype == torch.float16 else "fp32",
         "raster_mode": avatar.raster_mode,
-        "coverage": round(statistics.mean(covs), 4),
+        "coverage": timed["coverage"],
         "fps": round(fps, 3),
         "aggregate_fps": round(fps * streams, 3),
         "ms": ms,
         "frames": frames,
         "warmup": warmup,
-        "threads": torch.get_num_threads(),
-        "machine": {"cpu": _cpu_name(), "python": platform.python_version(), "torch": torch.__version__},
+        "threads": timed["last_timings"].get("threads", torch.get_num_threads()),
+        "machine": {"cpu": _cpu_name(), "cores": _cores(), "python": platform.python_version(),
+                    "torch": torch.__version__},
     }
+    if renderer.native is not None:
+        stats = renderer.stats
+        probe = native.bandwidth_probe(stats.blend_bytes, threads)
+        bound_ms = stats.blend_bytes / (probe["gbps"] * 1e9) * 1e3
+        report["simd"] = timed["last_timings"].get("isa")
+        report["blend"] = {
+            "bytes": stats.blend_bytes,
+            "stored_pairs": stats.pairs_stored,
+            "stored_fraction": round(stats.stored_fraction, 4),
+            "bandwidth_gbps": round(probe["gbps"], 2),
+            "bound_ms": round(bound_ms, 3),
+            "vs_bound": round(ms["blend"] / bound_ms, 3),
+        }
+    if renderer.backend != "reference" and reference_frames > 0:
+        ref = _time_frames(AvatarRenderer(avatar, "reference"), cams, reference_frames, 1, g)
+        ref_fps = 1000.0 / ref["ms"]["total"]
+        report["vs_reference"] = {"reference_fps": round(ref_fps, 4), "speedup": round(fps / ref_fps, 1),
+                                  "reference_ms": ref["ms"], "frames": reference_frames}
+    return report
+
+
+def _cores() -> int:
+
+
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
 def _cpu_name() -> str:

@@ -58,6 +58,13 @@ class Cameras:
         scale = torch.tensor([[sx, sx, sx], [sy, sy, sy], [1.0, 1.0, 1.0]], dtype=self.K.dtype)
         return Cameras(self.K * scale, self.R, self.t, width, height)
 
+    def expand(self, batch: int) -> Cameras:
+        """One camera repeated ``batch`` times (views, no copies)."""
+        if len(self) != 1:
+            raise FrameError(f"only a single camera expands, this batch has {len(self)}", field="camera")
+        return Cameras(self.K.expand(batch, 3, 3), self.R.expand(batch, 3, 3), self.t.expand(batch, 3),
+                       self.width, self.height)
+
     def index(self, i: int | slice) -> Cameras:
         s = slice(i, i + 1) if isinstance(i, int) else i
         return Cameras(self.K[s], self.R[s], self.t[s], self.width, self.height)

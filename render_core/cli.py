@@ -87,14 +87,15 @@ def cmd_bench_render(args: argparse.Namespace) -> int:
     avatar = read_bundle(args.bundle) if args.bundle else None
     report = bench_render(backend=args.backend, gaussians=args.gaussians, blendshapes=args.blendshapes,
                           size=args.size, streams=args.streams, frames=args.frames, warmup=args.warmup,
-                          sh_degree=args.sh_degree, precision=args.precision, seed=args.seed, avatar=avatar)
+                          sh_degree=args.sh_degree, precision=args.precision, seed=args.seed, avatar=avatar,
+                          reference_frames=args.reference_frames, threads=args.threads)
     if args.json:
         _emit(report)
     else:
         ms = report["ms"]
         print(f"{report['backend']}: {report['gaussians']} gaussians, K={report['blendshapes']}, "
               f"{report['size']}px, {report['streams']} stream(s): {report['fps']:.2f} fps per stream "
-              f"(blend {ms['blend']} ms, lbs {ms['lbs']} ms, raster {ms['raster']} ms), "
+              f"(blend {ms['blend']} ms, lbs {ms['lbs']} ms, raster {ms['raster']} ms, total {ms['total']} ms), "
               f"coverage {report['coverage']:.2f}")
     return 0
 
@@ -109,7 +110,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from .raster import backend_names
+    from .raster import backend_names, default_backend
 
     p = argparse.ArgumentParser(prog="blendsplat", description=__doc__)
     p.add_argument("-v", "--verbose", action="store_true", help="debug logging on stderr")
@@ -141,7 +142,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--out", required=True, type=Path)
     r.add_argument("--size", type=int, default=512)
     r.add_argument("--format", choices=("png", "exr", "mp4"), default="png")
-    r.add_argument("--backend", choices=backend_names(), default="reference")
+    r.add_argument("--backend", choices=backend_names(), default=default_backend())
     r.add_argument("--background", type=_background, default=(0.0, 0.0, 0.0), help="R,G,B in [0, 1]")
     r.add_argument("--fps", type=int, default=30, help="frame rate of mp4 output")
     r.set_defaults(fn=cmd_render)
@@ -149,15 +150,19 @@ def build_parser() -> argparse.ArgumentParser:
     bench = sub.add_parser("bench", help="benchmarks (JSON with --json)")
     bsub = bench.add_subparsers(dest="bench_command", required=True)
     b = bsub.add_parser("render", help="end-to-end blend + LBS + raster frame time")
-    b.add_argument("--backend", choices=backend_names(), default="reference")
+    b.add_argument("--backend", choices=backend_names(), default=default_backend())
     b.add_argument("--gaussians", type=int, default=10_000)
     b.add_argument("--blendshapes", type=int, default=50)
     b.add_argument("--size", type=int, default=512)
     b.add_argument("--streams", type=int, default=1, help="frames batched per call (concurrent streams)")
-    b.add_argument("--frames", type=int, default=5, help="timed frames")
-    b.add_argument("--warmup", type=int, default=1)
+    b.add_argument("--frames", type=int, default=10, help="timed frames")
+    b.add_argument("--warmup", type=int, default=2)
+    b.add_argument("--reference-frames", type=int, default=2,
+                   help="frames of the reference backend timed in the same run for the speed-up (0: skip)")
+    b.add_argument("--threads", type=int, default=0, help="native threads (0: all)")
     b.add_argument("--sh-degree", type=int, default=3, choices=range(4))
-    b.add_argument("--precision", choices=("fp32", "fp16"), default="fp32")
+    b.add_argument("--precision", choices=("fp32", "fp16"), default="fp16",
+                   help="blendshape storage of the synthetic avatar (production bundles are fp16)")
     b.add_argument("--seed", type=int, default=0)
     b.add_argument("--bundle", type=Path, default=None, help="benchmark this bundle instead of a synthetic one")
     b.add_argument("--json", action="store_true")

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import logging
 from pathlib import Path
 
 import torch
@@ -10,12 +9,9 @@ from tqdm import tqdm
 
 from .avatar import Avatar
 from .bundle import read_bundle
-from .deform import deform
 from .drive import read_drive_file
 from .encode import FORMATS, VideoWriter, write_image
-from .raster import render
-
-log = logging.getLogger(__name__)
+from .renderer import AvatarRenderer
 
 
 def render_drive(
@@ -25,7 +21,7 @@ def render_drive(
     *,
     size: int = 512,
     fmt: str = "png",
-    backend: str = "reference",
+    backend: str | None = None,
     background: tuple[float, float, float] = (0.0, 0.0, 0.0),
     fps: int = 30,
     progress: bool = True,
@@ -37,27 +33,26 @@ def render_drive(
     if fmt not in FORMATS:
         raise ValueError(f"unknown format {fmt!r}; use one of {', '.join(FORMATS)}")
     frames = read_drive_file(drive_path, avatar, size, size)
+    renderer = AvatarRenderer(avatar, backend)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     bg = torch.tensor(background, dtype=torch.float32)
     files: list[str] = []
     video = VideoWriter(out / "render.mp4", size, size, fps=fps) if fmt == "mp4" else None
     try:
-        with torch.no_grad():
-            for i, df in enumerate(tqdm(frames, desc="render", unit="frame", disable=not progress)):
-                result = render(deform(avatar, df.frame), df.camera, backend=backend, background=bg,
-                                mode=avatar.raster_mode)
-                if video is not None:
-                    video.write(result.rgb[0])
-                else:
-                    path = out / f"frame_{i:05d}.{fmt}"
-                    write_image(path, result.rgb[0], result.alpha[0])
-                    files.append(str(path))
+        for i, df in enumerate(tqdm(frames, desc="render", unit="frame", disable=not progress)):
+            result = renderer.render(df.frame, df.camera, background=bg)
+            if video is not None:
+                video.write(result.rgb[0])
+            else:
+                path = out / f"frame_{i:05d}.{fmt}"
+                write_image(path, result.rgb[0], result.alpha[0])
+                files.append(str(path))
     finally:
         if video is not None:
             video.close()
             files.append(str(out / "render.mp4"))
-    return {"frames": len(frames), "out": str(out), "format": fmt, "size": size, "backend": backend,
+    return {"frames": len(frames), "out": str(out), "format": fmt, "size": size, "backend": renderer.backend,
             "files": files}
 
 

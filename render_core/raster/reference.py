@@ -197,6 +197,7 @@ class RasterOutput:
     depth: Tensor  # [B, H, W] alpha-composited camera depth (divide by alpha for the expected depth)
     means2d: Tensor | None = None  # [B, N, 2] projected centres (for densification statistics)
     radii: Tensor | None = None  # [B, N, 2] int32, 0 where culled
+    timings: dict | None = None  # per-stage milliseconds (blend, lbs, raster) where the backend measures them
 
 
 def rasterize(
