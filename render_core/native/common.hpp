@@ -43,14 +43,15 @@ struct Cam {
     bool antialiased;
 };
 
-// A projected Gaussian, what the rasterizer reads (one cache line).
+// A projected Gaussian, what the rasterizer reads (one cache line). The conic and levels are in base 2:
+// q = sigma log2(e) = 0.5 (ca dx^2 + cc dy^2) + cb dx dy, alpha = min(0.999, 2^(log2_opacity - q)).
 struct Splat {
-    float mx, my;          // pixel-space centre
-    float ca, cb, cc;      // conic: sigma = 0.5 (ca dx^2 + cc dy^2) + cb dx dy
-    float opacity, depth;  // compositing opacity (with the antialiasing compensation), camera z
-    float r, g, b;         // colour
-    float x0, x1, y0, y1;  // pixels whose centres can pass eligibility, half-open; empty when culled
-    float level;           // ln(255 opacity): eligible where 0.5 d^T S^-1 d <= level
+    float mx, my;                // pixel-space centre
+    float ca, cb, cc;            // conic times log2(e)
+    float log2_opacity, depth;   // compositing opacity (antialiasing compensation included), camera z
+    float r, g, b;               // colour
+    float x0, x1, y0, y1;        // pixels whose centres can pass eligibility, half-open; empty when culled
+    float level;                 // log2(255 opacity): eligible only where q <= level
     float pad;
 };
 static_assert(sizeof(Splat) == 64, "Splat is one cache line");

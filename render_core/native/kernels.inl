@@ -261,16 +261,18 @@ static inline void project(const F x[3], const Mat3& rw, const F s[3], F opacity
     F y0 = V::max(V::ceil(my - hy - V::set1(0.5f)), V::set1(0.0f));
     F y1 = V::min(V::floor(my + hy - V::set1(0.5f)) + V::set1(1.0f), V::set1(float(cam.height)));
     valid = V::mand(valid, V::mand(V::lt(x0, x1), V::lt(y0, y1)));
-    const F zero = V::set1(0.0f);
+    const F zero = V::set1(0.0f), l2e = V::set1(kLog2e);
+    const F log2_op = V::log(V::max(op, V::set1(kAlphaMin))) * l2e;
     alignas(64) float f[15][kMaxLanes];
-    const F fields[15] = {mx, my, c11 * rdet, -c01 * rdet, c00 * rdet, op, p[2], rgb[0], rgb[1], rgb[2],
-                          V::select(valid, x0, zero), V::select(valid, x1, zero), V::select(valid, y0, zero),
-                          V::select(valid, y1, zero), V::set1(0.5f) * level};
+    const F fields[15] = {mx, my, c11 * rdet * l2e, -c01 * rdet * l2e, c00 * rdet * l2e, log2_op, p[2],
+                          rgb[0], rgb[1], rgb[2], V::select(valid, x0, zero), V::select(valid, x1, zero),
+                          V::select(valid, y0, zero), V::select(valid, y1, zero),
+                          V::max(log2_op + V::set1(7.994353436858858f), zero)};  // log2(255 o)
     for (int i = 0; i < 15; ++i) V::store(f[i], fields[i]);
     for (int l = 0; l < lanes; ++l) {
         Splat& o = out[l];
         o.mx = f[0][l], o.my = f[1][l], o.ca = f[2][l], o.cb = f[3][l], o.cc = f[4][l];
-        o.opacity = f[5][l], o.depth = f[6][l], o.r = f[7][l], o.g = f[8][l], o.b = f[9][l];
+        o.log2_opacity = f[5][l], o.depth = f[6][l], o.r = f[7][l], o.g = f[8][l], o.b = f[9][l];
         o.x0 = f[10][l], o.x1 = f[11][l], o.y0 = f[12][l], o.y1 = f[13][l];
         o.level = f[14][l], o.pad = 0.0f;
     }
@@ -357,69 +359,93 @@ static void project_posed(const PosedView& pv, int b, const Cam& cam, Splat* out
 
 // ------------------------------------------------------------------------------------------------ raster
 
-// One 16x16 tile. Each row is cut into segments of W pixels (one vector). The tile's Gaussians (depth order) are
-// first bucketed by the segments their eligibility ellipse reaches on each row (the exact span of
-// 0.5 d^T S^-1 d <= ln(255 o) at the row's centre line, plus 0.05 px); then each segment runs through its bucket
-// branch-free, its transmittance, colour and depth in registers, and stops once all its pixels have stopped.
+// One 16x16 tile. Each row is cut into segments of W pixels (one vector). First, for every row and every Gaussian
+// of the tile, the exact pixel span of its eligibility ellipse on the row's centre line (q <= level, plus
+// 0.05 px) is computed, W Gaussians at a time. Then each segment scans the spans W at a time and composites
+// only the Gaussians that reach it, in depth order, branch-free, with its transmittance, colour and depth in
+// registers, until all its pixels have stopped.
 static void raster_tile(const Splat* splats, int count, int tx, int ty, const Cam& cam, const float* background,
                         float* rgb, float* alpha, float* depth) {
     constexpr int NS = kTile / W;  // segments per row
     const int xb = tx * kTile, yb = ty * kTile;
     const int xe = std::min(xb + kTile, cam.width), ye = std::min(yb + kTile, cam.height);
-    const int rows = ye - yb, segs = rows * NS;
-    static thread_local std::vector<uint32_t> bucket_tls;
-    std::vector<uint32_t>& bucket = bucket_tls;
-    if (bucket.size() < size_t(segs) * count) bucket.resize(size_t(segs) * count);
-    int fill[kTile * NS] = {0};
-    for (int li = 0; li < count; ++li) {
-        const Splat& s = splats[li];
-        const int r0 = std::max(int(s.y0) - yb, 0), r1 = std::min(int(s.y1) - yb, rows);
-        const float ia = 1.0f / s.ca, shear = s.cb * ia, k2 = s.cb * s.cb - s.ca * s.cc, k0 = 2.0f * s.ca * s.level;
-        const int xlo_box = std::max(int(s.x0), xb), xhi_box = std::min(int(s.x1), xe) - 1;
-        for (int r = r0; r < r1; ++r) {
-            const float dy = s.my - (float(yb + r) + 0.5f);
-            const float disc = dy * dy * k2 + k0;
-            if (disc < 0.0f) continue;
-            const float half = std::sqrt(disc) * ia + 0.05f, xc = s.mx - 0.5f + shear * dy;
-            const int xlo = std::max(int(std::ceil(xc - half)), xlo_box);
-            const int xhi = std::min(int(std::floor(xc + half)), xhi_box);
-            if (xlo > xhi) continue;
-            for (int g = (xlo - xb) / W; g <= (xhi - xb) / W; ++g) {
-                const int seg = r * NS + g;
-                bucket[size_t(seg) * count + fill[seg]++] = uint32_t(li);
-            }
+    const int rows = ye - yb;
+    const int cpad = (count + W - 1) / W * W;
+    static thread_local std::vector<float> scratch_tls;
+    std::vector<float>& scratch = scratch_tls;
+    if (scratch.size() < size_t(cpad) * (8 + 2 * kTile)) scratch.resize(size_t(cpad) * (8 + 2 * kTile));
+    // Per Gaussian (structure of arrays): my, span centre at dy = 0, shear, 1/ca, k2, k0, and the box clipped to
+    // the tile (padding lanes get an empty box); then the spans of every row.
+    float* my = scratch.data();
+    float* xc0 = my + cpad;
+    float* shear = xc0 + cpad;
+    float* ia = shear + cpad;
+    float* k2 = ia + cpad;
+    float* k0 = k2 + cpad;
+    float* boxlo = k0 + cpad;
+    float* boxhi = boxlo + cpad;
+    float* lo = boxhi + cpad;
+    float* hi = lo + size_t(kTile) * cpad;
+    for (int i = 0; i < cpad; ++i) {
+        if (i < count) {
+            const Splat& s = splats[i];
+            my[i] = s.my, xc0[i] = s.mx - 0.5f, ia[i] = 1.0f / s.ca, shear[i] = s.cb / s.ca;
+            k2[i] = s.cb * s.cb - s.ca * s.cc, k0[i] = 2.0f * s.ca * s.level;
+            boxlo[i] = float(std::max(int(s.x0), xb)), boxhi[i] = float(std::min(int(s.x1), xe) - 1);
+        } else {
+            my[i] = xc0[i] = shear[i] = k2[i] = 0.0f, ia[i] = 1.0f, k0[i] = -1.0f;
+            boxlo[i] = 1e9f, boxhi[i] = -1e9f;
+        }
+    }
+    const F big = V::set1(1e9f), zero = V::set1(0.0f);
+    for (int r = 0; r < rows; ++r) {
+        const F yc = V::set1(float(yb + r) + 0.5f);
+        for (int c = 0; c < cpad; c += W) {
+            const F dy = V::load(my + c) - yc;
+            const F disc = V::fma(dy * dy, V::load(k2 + c), V::load(k0 + c));
+            const F half = V::fma(V::sqrt(V::max(disc, zero)), V::load(ia + c), V::set1(0.05f));
+            const F xc = V::fma(V::load(shear + c), dy, V::load(xc0 + c));
+            const F l = V::max(V::ceil(xc - half), V::load(boxlo + c));
+            const F h = V::min(V::floor(xc + half), V::load(boxhi + c));
+            const M empty = V::mor(V::lt(disc, zero), V::gt(l, h));
+            V::store(lo + size_t(r) * cpad + c, V::select(empty, big, l));
+            V::store(hi + size_t(r) * cpad + c, V::select(empty, -big, h));
         }
     }
     const F iota = V::iota();
-    const F one = V::set1(1.0f), zero = V::set1(0.0f);
+    const F one = V::set1(1.0f);
     const F amax = V::set1(kAlphaMax), amin = V::set1(kAlphaMin), tstop = V::set1(kTStop);
-    for (int seg = 0; seg < segs; ++seg) {
+    for (int seg = 0; seg < rows * NS; ++seg) {
         const int r = seg / NS, x0 = xb + (seg % NS) * W, y = yb + r;
         const float yc = float(y) + 0.5f;
         const F px = V::set1(float(x0) + 0.5f) + iota;
+        const F seg_lo = V::set1(float(x0)), seg_hi = V::set1(float(x0 + W - 1));
         F T = one, Cr = zero, Cg = zero, Cb = zero, D = zero;
         M live = V::lt(px, V::set1(float(xe)));
-        const uint32_t* list = bucket.data() + size_t(seg) * count;
-        const int n = fill[seg];
-        for (int e = 0; e < n; ++e) {
-            const Splat& s = splats[list[e]];
-            const float dy = s.my - yc;
-            const F dx = V::set1(s.mx) - px;
-            const F sigma = V::fma(dx, V::fma(V::set1(0.5f * s.ca), dx, V::set1(s.cb * dy)),
+        const float* row_lo = lo + size_t(r) * cpad;
+        const float* row_hi = hi + size_t(r) * cpad;
+        for (int c = 0; c < cpad && V::any(live); c += W) {
+            unsigned reach = V::bits(V::mand(V::le(V::load(row_lo + c), seg_hi), V::ge(V::load(row_hi + c), seg_lo)));
+            while (reach) {
+                const Splat& s = splats[c + __builtin_ctz(reach)];
+                reach &= reach - 1;
+                const float dy = s.my - yc;
+                const F dx = V::set1(s.mx) - px;
+                const F q = V::fma(dx, V::fma(V::set1(0.5f * s.ca), dx, V::set1(s.cb * dy)),
                                    V::set1(0.5f * s.cc * dy * dy));
-            const F a = V::min(amax, V::set1(s.opacity) * V::exp(-sigma));
-            const M ok = V::mand(live, V::mand(V::ge(sigma, zero), V::ge(a, amin)));
-            const F nt = T * (one - a);
-            const M stop = V::mand(ok, V::le(nt, tstop));
-            const M add = V::mandnot(stop, ok);
-            const F w = V::select(add, a * T, zero);
-            Cr = V::fma(w, V::set1(s.r), Cr);
-            Cg = V::fma(w, V::set1(s.g), Cg);
-            Cb = V::fma(w, V::set1(s.b), Cb);
-            D = V::fma(w, V::set1(s.depth), D);
-            T = V::select(add, nt, T);
-            live = V::mandnot(stop, live);
-            if ((e & 7) == 7 && !V::any(live)) break;
+                const F a = V::min(amax, V::exp2(V::set1(s.log2_opacity) - q));
+                const M ok = V::mand(live, V::mand(V::ge(q, zero), V::ge(a, amin)));
+                const F nt = T * (one - a);
+                const M stop = V::mand(ok, V::le(nt, tstop));
+                const M add = V::mandnot(stop, ok);
+                const F w = V::select(add, a * T, zero);
+                Cr = V::fma(w, V::set1(s.r), Cr);
+                Cg = V::fma(w, V::set1(s.g), Cg);
+                Cb = V::fma(w, V::set1(s.b), Cb);
+                D = V::fma(w, V::set1(s.depth), D);
+                T = V::select(add, nt, T);
+                live = V::mandnot(stop, live);
+            }
         }
         alignas(64) float out[5][kMaxLanes];
         V::store(out[0], T), V::store(out[1], Cr), V::store(out[2], Cg), V::store(out[3], Cb), V::store(out[4], D);

@@ -46,6 +46,8 @@ constexpr float kExpHi = 88.3762626647949f, kExpLo = -88.3762626647949f;
 constexpr float kLog2e = 1.44269504088896341f, kExpC1 = 0.693359375f, kExpC2 = -2.12194440e-4f;
 constexpr float kExpP0 = 1.9875691500e-4f, kExpP1 = 1.3981999507e-3f, kExpP2 = 8.3334519073e-3f,
                 kExpP3 = 4.1665795894e-2f, kExpP4 = 1.6666665459e-1f, kExpP5 = 5.0000001201e-1f;
+constexpr float kExp2C1 = 0.6931471805599453f, kExp2C2 = 0.2402265069591007f, kExp2C3 = 0.0555041086648216f,
+                kExp2C4 = 0.0096181291076285f, kExp2C5 = 0.0013333558146428f;
 constexpr float kSqrtHalf = 0.707106781186547524f;
 constexpr float kLogP[9] = {7.0376836292e-2f, -1.1514610310e-1f, 1.1676998740e-1f, -1.2420140846e-1f,
                             1.4249322787e-1f, -1.6668057665e-1f, 2.0000714765e-1f, -2.4999993993e-1f,
@@ -68,6 +70,7 @@ struct Scalar {
     static F floor(F a) { return std::floor(a); }
     static F ceil(F a) { return std::ceil(a); }
     static F exp(F a) { return std::exp(a); }
+    static F exp2(F a) { return std::exp2(a); }
     static F log(F a) { return std::log(a); }
     static F abs(F a) { return std::fabs(a); }
     static M lt(F a, F b) { return a < b; }
@@ -81,6 +84,7 @@ struct Scalar {
     static void mstore(uint32_t* p, M m) { *p = m ? 1u : 0u; }
     static bool any(M m) { return m; }
     static int count(M m) { return m ? 1 : 0; }
+    static unsigned bits(M m) { return m ? 1u : 0u; }
     static F select(M m, F a, F b) { return m ? a : b; }
     static float hsum(F a) { return a; }
 };
@@ -135,6 +139,7 @@ struct Avx2 {
     }
     static bool any(M m) { return _mm256_movemask_ps(m.v) != 0; }
     static int count(M m) { return __builtin_popcount(unsigned(_mm256_movemask_ps(m.v))); }
+    static unsigned bits(M m) { return unsigned(_mm256_movemask_ps(m.v)); }
     static F select(M m, F a, F b) { return _mm256_blendv_ps(b.v, a.v, m.v); }
     static float hsum(F a) {
         __m128 s = _mm_add_ps(_mm256_castps256_ps128(a.v), _mm256_extractf128_ps(a.v, 1));
@@ -155,6 +160,19 @@ struct Avx2 {
         y = fma(y, z, x + set1(1.0f));
         __m256i e = _mm256_slli_epi32(_mm256_add_epi32(_mm256_cvttps_epi32(fx.v), _mm256_set1_epi32(127)), 23);
         return y * F(_mm256_castsi256_ps(e));
+    }
+    // 2^t for t in [-126, 1]: t = n + f, |f| <= 0.5, 2^f by its Taylor series to degree 5 (< 3e-6 relative).
+    static F exp2(F t) {
+        t = min(max(t, set1(-126.0f)), set1(1.0f));
+        F n = _mm256_round_ps(t.v, _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC);
+        F f = t - n;
+        F p = fma(set1(kExp2C5), f, set1(kExp2C4));
+        p = fma(p, f, set1(kExp2C3));
+        p = fma(p, f, set1(kExp2C2));
+        p = fma(p, f, set1(kExp2C1));
+        p = fma(p, f, set1(1.0f));
+        __m256i e = _mm256_slli_epi32(_mm256_cvtps_epi32(n.v), 23);
+        return F(_mm256_castsi256_ps(_mm256_add_epi32(_mm256_castps_si256(p.v), e)));
     }
     static F log(F x) {  // x > 0
         __m256i bits = _mm256_castps_si256(x.v);
@@ -224,6 +242,7 @@ struct Avx512 {
     }
     static bool any(M m) { return m.k != 0; }
     static int count(M m) { return __builtin_popcount(unsigned(m.k)); }
+    static unsigned bits(M m) { return unsigned(m.k); }
     static F select(M m, F a, F b) { return _mm512_mask_blend_ps(m.k, b.v, a.v); }
     static float hsum(F a) { return _mm512_reduce_add_ps(a.v); }
     static F exp(F x) {
@@ -239,6 +258,18 @@ struct Avx512 {
         y = fma(y, z, x + set1(1.0f));
         __m512i e = _mm512_slli_epi32(_mm512_add_epi32(_mm512_cvttps_epi32(fx.v), _mm512_set1_epi32(127)), 23);
         return y * F(_mm512_castsi512_ps(e));
+    }
+    static F exp2(F t) {
+        t = min(max(t, set1(-126.0f)), set1(1.0f));
+        F n = _mm512_roundscale_ps(t.v, _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC);
+        F f = t - n;
+        F p = fma(set1(kExp2C5), f, set1(kExp2C4));
+        p = fma(p, f, set1(kExp2C3));
+        p = fma(p, f, set1(kExp2C2));
+        p = fma(p, f, set1(kExp2C1));
+        p = fma(p, f, set1(1.0f));
+        __m512i e = _mm512_slli_epi32(_mm512_cvtps_epi32(n.v), 23);
+        return F(_mm512_castsi512_ps(_mm512_add_epi32(_mm512_castps_si512(p.v), e)));
     }
     static F log(F x) {
         __m512i bits = _mm512_castps_si512(x.v);
