@@ -14,18 +14,20 @@ constexpr float kTStop = 1e-4f;
 constexpr int kMaxBatch = 64;  // frames blended together per pass (larger batches are split)
 
 // A packed avatar (built by render_core/raster/native.py; the arrays belong to Python).
-// Row layout of base/vals (Dp floats): position 3, quaternion 4 (wxyz), log-scale 3, opacity logit 1,
-// SH 3C (coefficient-major, channel-minor), zero padding to a multiple of 16.
+// Row layout of base/vals: position 3, quaternion 4 (wxyz), log-scale 3, opacity logit 1, SH 3C
+// (coefficient-major, channel-minor): D = 11 + 3C values. base rows are padded with zeros to Dp (a multiple of 16);
+// vals rows are packed at stride D (no padding: fewer bytes to stream) and the array ends with Dp - D spare
+// values, so full-width loads of the last row stay inside it (lanes past D are never used).
 struct AvatarView {
     int n_total = 0;  // face + mouth Gaussians
     int n_face = 0;
-    int K = 0, J = 0, C = 0, Dp = 0;
+    int K = 0, J = 0, C = 0, D = 0, Dp = 0;
     int P = 0, Ppad = 0;  // pose-corrective features 9 (J - 1), padded to 16
     bool half = false;    // vals and pc are fp16 (uint16 bits) instead of fp32
     const float* base = nullptr;        // [n_total, Dp]
     const int32_t* row_ptr = nullptr;   // [n_total + 1] CSR over (Gaussian, blendshape) pairs stored
-    const int32_t* col = nullptr;       // [nnz] blendshape index of each stored pair
-    const void* vals = nullptr;         // [nnz, Dp] deltas
+    const uint16_t* col = nullptr;      // [nnz] blendshape index of each stored pair
+    const void* vals = nullptr;         // [nnz * D + Dp - D] deltas
     const void* pc = nullptr;           // [n_face, 3, Ppad] pose correctives, or null
     const float* eyelid = nullptr;      // [n_face, 2, 3] eyelid offsets, or null
     const float* lbs = nullptr;         // [J, n_total] skinning weights (mouth: one-hot on its joint)
@@ -68,10 +70,12 @@ struct PosedView {
 
 struct Kernels {
     const char* name;
-    // Eq. 1 blend + pose correctives + eyelids for Gaussians [n0, n1) of B frames into out [B, n_total, Dp].
+    // Eq. 1 blend + pose correctives + eyelids of Gaussians [n0, n1) for B frames: the row of Gaussian n in
+    // frame b goes to out + (b * out_stride + n - n0) * Dp.
     void (*blend)(const AvatarView& av, const float* psi, const float* pose_feat, const float* eyelids, int B,
-                  float* out, int n0, int n1);
-    // LBS, rotation, activation, SH colour and projection of blended Gaussians [n0, n1) for frame b.
+                  float* out, int out_stride, int n0, int n1);
+    // LBS, rotation, activation, SH colour and projection of one frame's blended Gaussians [n0, n1)
+    // (blended points at the row of n0) into out[n0, n1).
     void (*deform_project)(const AvatarView& av, const float* blended, const float* A, const Cam& cam, Splat* out,
                            int n0, int n1);
     // Projection of already posed Gaussians [n0, n1) of one frame.

@@ -22,7 +22,7 @@ constexpr int kMaxLanes = 16;
 
 template <class T, int DP>
 static void blend_t(const AvatarView& av, const float* psi, const float* pose_feat, const float* eyelids, int B,
-                    float* out, int n0, int n1) {
+                    float* out, int out_stride, int n0, int n1) {
     alignas(64) float acc[kMaxBatch * DP];
     const T* vals = static_cast<const T*>(av.vals);
     const T* pc = static_cast<const T*>(av.pc);
@@ -36,7 +36,7 @@ static void blend_t(const AvatarView& av, const float* psi, const float* pose_fe
         for (int b = 0; b < B; ++b) std::memcpy(acc + b * DP, base, sizeof(float) * DP);
         for (int j = av.row_ptr[n]; j < av.row_ptr[n + 1]; ++j) {
             const int k = av.col[j];
-            const T* v = vals + size_t(j) * DP;
+            const T* v = vals + size_t(j) * av.D;
             if (B == 1) {
                 const F w = V::set1(psi[k]);
 #pragma GCC unroll 16
@@ -72,27 +72,27 @@ static void blend_t(const AvatarView& av, const float* psi, const float* pose_fe
             }
         }
         for (int b = 0; b < B; ++b)
-            std::memcpy(out + (size_t(b) * av.n_total + n) * DP, acc + b * DP, sizeof(float) * DP);
+            std::memcpy(out + (size_t(b) * out_stride + (n - n0)) * DP, acc + b * DP, sizeof(float) * DP);
     }
 }
 
 template <class T>
 static void blend_dp(const AvatarView& av, const float* psi, const float* pf, const float* el, int B, float* out,
-                     int n0, int n1) {
+                     int stride, int n0, int n1) {
     switch (av.Dp) {
-        case 16: return blend_t<T, 16>(av, psi, pf, el, B, out, n0, n1);
-        case 32: return blend_t<T, 32>(av, psi, pf, el, B, out, n0, n1);
-        case 48: return blend_t<T, 48>(av, psi, pf, el, B, out, n0, n1);
-        default: return blend_t<T, 64>(av, psi, pf, el, B, out, n0, n1);
+        case 16: return blend_t<T, 16>(av, psi, pf, el, B, out, stride, n0, n1);
+        case 32: return blend_t<T, 32>(av, psi, pf, el, B, out, stride, n0, n1);
+        case 48: return blend_t<T, 48>(av, psi, pf, el, B, out, stride, n0, n1);
+        default: return blend_t<T, 64>(av, psi, pf, el, B, out, stride, n0, n1);
     }
 }
 
 static void blend(const AvatarView& av, const float* psi, const float* pf, const float* el, int B, float* out,
-                  int n0, int n1) {
+                  int stride, int n0, int n1) {
     if (av.half)
-        blend_dp<uint16_t>(av, psi, pf, el, B, out, n0, n1);
+        blend_dp<uint16_t>(av, psi, pf, el, B, out, stride, n0, n1);
     else
-        blend_dp<float>(av, psi, pf, el, B, out, n0, n1);
+        blend_dp<float>(av, psi, pf, el, B, out, stride, n0, n1);
 }
 
 // ------------------------------------------------------------------------------------------------ geometry
@@ -289,7 +289,7 @@ static void deform_project(const AvatarView& av, const float* blended, const flo
         const int lanes = std::min(W, n1 - g0);
         for (int l = 0; l < W; ++l) {  // transpose W rows (tail lanes repeat the last Gaussian)
             const int n = g0 + std::min(l, lanes - 1);
-            const float* row = blended + size_t(n) * DP;
+            const float* row = blended + size_t(n - n0) * DP;
             for (int d = 0; d < 11 + 3 * av.C; ++d) buf[d * W + l] = row[d];
             for (int j = 0; j < J; ++j) wbuf[j * W + l] = av.lbs[size_t(j) * av.n_total + n];
         }

@@ -49,7 +49,7 @@ bool is_u16(const AnyIn& a) { return a.dtype() == nb::dtype<uint16_t>(); }
 
 class NativeAvatar {
    public:
-    NativeAvatar(In<float> base, In<int32_t> row_ptr, In<int32_t> col, AnyIn vals, AnyIn pc, In<float> eyelid,
+    NativeAvatar(In<float> base, In<int32_t> row_ptr, In<uint16_t> col, AnyIn vals, AnyIn pc, In<float> eyelid,
                  In<float> lbs, In<float> joints, In<int32_t> parents, int n_face, int K, int C)
         : base_(base), row_ptr_(row_ptr), col_(col), vals_(vals), pc_(pc), eyelid_(eyelid), lbs_(lbs),
           joints_(joints), parents_(parents) {
@@ -72,8 +72,10 @@ class NativeAvatar {
         const size_t nnz = size_t(rp[n]);
         require_shape(col, {nnz}, "col");
         for (size_t i = 0; i < nnz; ++i) require(col.data()[i] >= 0 && col.data()[i] < K, "col out of range");
+        require(K <= 65536, "at most 65536 blendshapes");
         require(is_f32(vals) || is_u16(vals), "vals: float32 or float16 bits (uint16)");
-        require_shape(vals, {nnz, size_t(dp)}, "vals");
+        const int D = 11 + 3 * C;
+        require_shape(vals, {nnz * D + (dp - D)}, "vals");
         const bool half = is_u16(vals);
         const int P = 9 * (J - 1), ppad = ((P + 15) / 16) * 16;
         if (pc.size() > 0) {
@@ -81,7 +83,7 @@ class NativeAvatar {
             require_shape(pc, {size_t(n_face), 3, size_t(ppad)}, "pc");
         }
         if (eyelid.size() > 0) require_shape(eyelid, {size_t(n_face), 2, 3}, "eyelid");
-        v_.n_total = n, v_.n_face = n_face, v_.K = K, v_.J = J, v_.C = C, v_.Dp = dp;
+        v_.n_total = n, v_.n_face = n_face, v_.K = K, v_.J = J, v_.C = C, v_.D = D, v_.Dp = dp;
         v_.P = P, v_.Ppad = ppad, v_.half = half;
         v_.base = base.data(), v_.row_ptr = rp, v_.col = col.data(), v_.vals = vals.data();
         v_.pc = pc.size() > 0 ? pc.data() : nullptr;
@@ -92,7 +94,8 @@ class NativeAvatar {
 
    private:
     In<float> base_;
-    In<int32_t> row_ptr_, col_;
+    In<int32_t> row_ptr_;
+    In<uint16_t> col_;
     AnyIn vals_, pc_;
     In<float> eyelid_, lbs_, joints_;
     In<int32_t> parents_;
@@ -217,7 +220,7 @@ nb::dict bandwidth_probe(size_t nbytes, int threads) {
 NB_MODULE(_native, m) {
     m.doc() = "Blendsplat's native CPU renderer (fused blend + skinning + tile rasterizer).";
     nb::class_<NativeAvatar>(m, "NativeAvatar")
-        .def(nb::init<In<float>, In<int32_t>, In<int32_t>, AnyIn, AnyIn, In<float>, In<float>, In<float>,
+        .def(nb::init<In<float>, In<int32_t>, In<uint16_t>, AnyIn, AnyIn, In<float>, In<float>, In<float>,
                       In<int32_t>, int, int, int>(),
              "base"_a, "row_ptr"_a, "col"_a, "vals"_a, "pc"_a, "eyelid"_a, "lbs"_a, "joints"_a, "parents"_a,
              "n_face"_a, "K"_a, "C"_a);

@@ -114,12 +114,12 @@ def rasterize(
     return torch.from_numpy(rgb), torch.from_numpy(alpha), torch.from_numpy(depth), dict(timings)
 
 
-def _rows(g: Gaussians, dp: int, dtype: torch.dtype) -> Tensor:
-    """[..., n, Dp] packed rows: position, quaternion, log-scale, opacity logit, SH (coefficient-major), zeros."""
+def _rows(g: Gaussians, width: int, dtype: torch.dtype) -> Tensor:
+    """[..., n, width] packed rows: position, quaternion, log-scale, opacity logit, SH (coefficient-major), zeros."""
     lead = g.means.shape[:-1]
     parts = [g.means, g.quats, g.log_scales, g.opacity_logits[..., None], g.sh.reshape(*lead, -1)]
     rows = torch.cat([p.to(torch.float32) for p in parts], dim=-1)
-    return torch.nn.functional.pad(rows, (0, dp - rows.shape[-1])).to(dtype)
+    return torch.nn.functional.pad(rows, (0, width - rows.shape[-1])).to(dtype)
 
 
 def _ceil16(x: int) -> int:
@@ -154,16 +154,18 @@ class NativeAvatar:
         c = sh_coeff_count(avatar.sh_degree)
         dp = _ceil16(11 + 3 * c)
         base = torch.cat([_rows(avatar.neutral, dp, torch.float32), _rows(avatar.mouth, dp, torch.float32)])
-        deltas = _rows(avatar.deltas, dp, store).transpose(0, 1)  # [N, K, Dp]
+        d = 11 + 3 * c
+        deltas = _rows(avatar.deltas, d, store).transpose(0, 1)  # [N, K, D]
         stored = (deltas != 0).any(-1)  # [N, K]: pairs that change anything
         if bool(stored.all()):
-            vals, col = deltas.reshape(n * k, dp), torch.arange(k).repeat(n)
+            vals, col = deltas.reshape(-1), torch.arange(k).repeat(n)
         else:
-            vals, col = deltas[stored], stored.nonzero()[:, 1]
+            vals, col = deltas[stored].reshape(-1), stored.nonzero()[:, 1]
+        vals = torch.cat([vals, torch.zeros(dp - d, dtype=store)])  # full-width loads of the last row stay inside
         counts = torch.cat([stored.sum(1), torch.zeros(m, dtype=torch.long)])
         row_ptr = torch.cat([torch.zeros(1, dtype=torch.long), counts.cumsum(0)])
-        if int(row_ptr[-1]) >= 2**31:
-            raise ValueError("too many stored blendshape pairs for the native backend (2^31)")
+        if int(row_ptr[-1]) >= 2**31 or k > 65536:
+            raise ValueError("the native backend stores at most 2^31 blendshape pairs and 65536 blendshapes")
         p = 9 * (j - 1)
         if avatar.pose_correctives is not None and p > 0:
             pc = avatar.pose_correctives.to(torch.float32).permute(1, 2, 0)  # [N, 3, P]
@@ -179,7 +181,8 @@ class NativeAvatar:
             return t.contiguous().view(torch.int16).numpy().view(np.uint16) if t.dtype == torch.float16 else _np(t)
 
         self._arrays = dict(
-            base=_np(base), row_ptr=_np(row_ptr, torch.int32), col=_np(col, torch.int32), vals=bits(vals),
+            base=_np(base), row_ptr=_np(row_ptr, torch.int32), col=col.to(torch.int32).numpy().astype(np.uint16),
+            vals=bits(vals),
             pc=bits(pc), eyelid=_np(eyelid), lbs=np.ascontiguousarray(_np(lbs).T), joints=_np(avatar.joint_positions),
             parents=np.asarray(avatar.joint_parents, dtype=np.int32),
         )
