@@ -59,16 +59,16 @@ def assert_alpha_bar(alpha: torch.Tensor, ref_alpha: torch.Tensor, tol: float = 
     assert good >= fraction, f"{what}: only {good:.5f} of pixels within {tol:.2e} (max error {float(err.max()):.3e})"
 
 
-def assert_parity(rgb, alpha, depth, ref, min_psnr: float = MIN_PSNR, depth_tol: float = 1e-3) -> float:
-    """The acceptance bars against a reference RasterOutput; returns the RGB PSNR."""
+def assert_parity(rgb, alpha, depth, ref, min_psnr: float = MIN_PSNR) -> float:
+    """The acceptance bars against a reference RasterOutput; returns the RGB PSNR. Depth (alpha-composited camera
+    z) gets the alpha bar scaled by the largest depth: an alpha error e moves it by about e z."""
     assert rgb.shape == ref.rgb.shape and alpha.shape == ref.alpha.shape and depth.shape == ref.depth.shape
     assert rgb.dtype == alpha.dtype == depth.dtype == torch.float32
     assert torch.isfinite(rgb).all() and torch.isfinite(alpha).all() and torch.isfinite(depth).all()
     p = psnr(rgb, ref.rgb)
     assert p >= min_psnr, f"RGB PSNR {p:.2f} dB < {min_psnr} dB"
     assert_alpha_bar(alpha, ref.alpha)
-    if depth_tol is not None:
-        assert_alpha_bar(depth, ref.depth, tol=depth_tol, what="depth")
+    assert_alpha_bar(depth, ref.depth, tol=ALPHA_TOL * max(1.0, float(ref.depth.max())), what="depth")
     return p
 
 
@@ -119,9 +119,9 @@ def head_cameras(avatar, size: int, yaws=(0.0, 30.0), pitches=(0.0, -10.0)) -> C
     return orbit(list(yaws), list(pitches), width=size, height=size, focal=focal)
 
 
-def fused(renderer_or_native, frame: Frame, cams: Cameras, bg=None, **kw):
-    """(rgb, alpha, depth, timings) from a NativeAvatar."""
-    return renderer_or_native.render(frame.expression, frame.joint_rotations, frame.eyelids, cams, bg, **kw)
+def fused(packed: native.NativeAvatar, frame: Frame, cams: Cameras, bg=None, **kw):
+    """(rgb, alpha, depth, timings) of a frame from a packed avatar's fused pipeline."""
+    return packed.render(frame.expression, frame.joint_rotations, frame.eyelids, cams, bg, **kw)
 
 
 def zero_pairs(avatar, gauss_mask: torch.Tensor, shape_mask: torch.Tensor, fields=None):
@@ -137,6 +137,12 @@ def zero_pairs(avatar, gauss_mask: torch.Tensor, shape_mask: torch.Tensor, field
 
 
 # ------------------------------------------------------------------------------------------------ fixtures
+
+
+@pytest.fixture(autouse=True)
+def _no_simd_override(monkeypatch):
+    """Tests that want BLENDSPLAT_SIMD set it themselves; the default path is the fastest."""
+    monkeypatch.delenv("BLENDSPLAT_SIMD", raising=False)
 
 
 @pytest.fixture(scope="module")
@@ -229,7 +235,7 @@ def test_equal_depths_composite_in_index_order(simd):
     args = _stack(means, quats, scales, opac, colors)
     ref = reference.rasterize(*args, cams)
     rgb, alpha, depth, _ = native_raster(args, cams, simd=simd, threads=2)
-    assert float(ref.alpha.mean()) > 0.9
+    assert float(ref.alpha.mean()) > 0.5
     assert_parity(rgb, alpha, depth, ref)
     flipped = native_raster(_stack(*[t.flip(1) for t in args]), cams, simd=simd)[0]
     assert psnr(flipped, rgb) < 40.0  # the order matters in this scene
@@ -263,8 +269,8 @@ def test_rasterize_rejects_mismatched_shapes():
             native_raster(wrong, cams)
     with pytest.raises((ShapeError, ValueError, FrameError)):
         native_raster(args, cams.index(0))  # 3 splat sets, 1 camera
-    with pytest.raises((ShapeError, ValueError), match="background"):
-        native_raster(args, cams, torch.zeros(2, 3))
+    with pytest.raises((ShapeError, ValueError)):
+        native_raster(args, cams, torch.zeros(2, 3))  # 3 cameras, 2 backgrounds
 
 
 def test_fused_rejects_mismatched_shapes(avatar):
@@ -611,7 +617,7 @@ def test_thread_count_does_not_change_the_image(simd, avatar):
     assert one[3]["threads"] == 1
     for threads in (2, 3, 0):  # 0: all cores
         other = native_raster(args, cams, BG3, simd=simd, threads=threads)
-        assert other[3]["threads"] == (threads or other[3]["threads"]) >= 1
+        assert other[3]["threads"] == threads if threads else other[3]["threads"] >= 1
         for a, b in zip(one[:3], other[:3], strict=True):
             assert torch.equal(a, b)
 
@@ -621,7 +627,7 @@ def test_thread_count_does_not_change_the_image(simd, avatar):
     assert ref.timings["threads"] == 1
     for threads in (2, 3, 0):
         out = AvatarRenderer(avatar, "native", simd=simd, threads=threads).render(frame, hcams, BG3)
-        assert out.timings["threads"] == (threads or out.timings["threads"]) >= 1
+        assert out.timings["threads"] == threads if threads else out.timings["threads"] >= 1
         for a, b in ((ref.rgb, out.rgb), (ref.alpha, out.alpha), (ref.depth, out.depth)):
             assert torch.equal(a, b)
     assert float(ref.alpha.mean()) > 0.1
@@ -724,17 +730,62 @@ def test_sparse_deltas_are_skipped_and_render_the_same(simd, precision, avatar):
 
 
 def test_pair_changing_any_property_is_stored(avatar):
-    """A pair whose position delta is zero but whose other properties change is still stored."""
+    """A pair is stored when any property changes (here: position and rotation deltas zero, the rest not), and
+    dropped only when all five are zero."""
     k = avatar.num_expressions
-    means_only, pair = zero_pairs(avatar, torch.ones(avatar.num_gaussians, dtype=torch.bool),
-                                  torch.ones(k, dtype=torch.bool), fields=["means", "quats"])
-    stats = native.NativeAvatar(means_only).stats
+    unmoved, pair = zero_pairs(avatar, torch.ones(avatar.num_gaussians, dtype=torch.bool),
+                               torch.ones(k, dtype=torch.bool), fields=["means", "quats"])
+    stats = native.NativeAvatar(unmoved).stats
     assert stats.pairs_stored == stats.pairs_total == int(pair.sum())
     sh_only, _ = zero_pairs(avatar, torch.ones(avatar.num_gaussians, dtype=torch.bool),
                             torch.ones(k, dtype=torch.bool), fields=["means", "quats", "log_scales", "opacity_logits"])
     assert native.NativeAvatar(sh_only).stats.stored_fraction == 1.0
     none, _ = zero_pairs(avatar, torch.ones(avatar.num_gaussians, dtype=torch.bool), torch.ones(k, dtype=torch.bool))
-    assert native.NativeAvatar(none).stats.pairs_stored == 0
+    packed_none = native.NativeAvatar(none)
+    assert packed_none.stats.pairs_stored == 0 and packed_none.stats.stored_fraction == 0.0
+    # Nothing stored renders as the full avatar with zero expression (same pose and eyelids).
+    frame = random_frames(avatar, 2, torch.Generator().manual_seed(3))
+    cams = orbit([0.0, 20.0], width=24, height=24, focal=60.0)
+    neutral = dataclasses.replace(frame, expression=torch.zeros_like(frame.expression))
+    got = fused(packed_none, frame, cams)
+    want = fused(native.NativeAvatar(avatar), neutral, cams)
+    assert float(want[1].mean()) > 0.1
+    for a, b in zip(got[:3], want[:3], strict=True):
+        assert torch.equal(a, b)
+
+
+def _wide_avatar(k: int):
+    """8 face Gaussians and ``k`` blendshapes, all zero except the first and the last (which moves the face 2 cm
+    to the right and turns it green)."""
+    av = synth_avatar(gaussians=8, blendshapes=k, seed=1, sh_degree=0)
+    deltas = av.deltas.map(torch.zeros_like)
+    deltas.means[0, :, 1] = 0.01
+    deltas.means[-1, :, 0] = 0.02
+    deltas.sh[-1, :, 0, 1] = 1.0
+    return dataclasses.replace(av, deltas=deltas)
+
+
+@pytest.mark.parametrize("k", [65536, 65537])
+def test_last_of_many_blendshapes_is_applied(k):
+    """Blendshape indices near and past 2^16 (the packed index type): the last blendshape must act as itself, or
+    the avatar must be refused with a ValueError naming the limit."""
+    av = _wide_avatar(k)
+    try:
+        packed = native.NativeAvatar(av)
+    except ValueError as err:
+        assert k > 65536 and "65536" in str(err)
+        return
+    assert packed.stats.pairs_stored == 16 and packed.stats.stored_fraction == 16 / (8 * k)
+    frame = Frame.neutral(av, 2)
+    frame.expression[0, -1] = 1.0
+    frame.expression[1, 0] = 0.5
+    frame.expression[1, -1] = 0.7
+    cams = orbit([0.0, 15.0], width=24, height=24, focal=60.0)
+    ref = AvatarRenderer(av, "reference").render(frame, cams)
+    out = fused(packed, frame, cams)
+    assert_parity(*out[:3], ref)
+    rest = fused(packed, Frame.neutral(av, 2), cams)
+    assert psnr(rest[0], out[0]) < 30.0  # the last blendshape visibly acts
 
 
 # ------------------------------------------------------------------------------------------------ 11. BLENDSPLAT_SIMD

@@ -53,9 +53,11 @@ def simd_paths() -> list[str]:
 
 def simd_choice(simd: str | None = None) -> str:
     """The SIMD path to use: ``simd`` if given, else ``BLENDSPLAT_SIMD``, else "auto" (the fastest)."""
+    source = "simd" if simd else "BLENDSPLAT_SIMD"
     choice = simd or os.environ.get("BLENDSPLAT_SIMD", "auto") or "auto"
-    if choice != "auto" and choice not in ("scalar", "avx2", "avx512"):
-        raise ValueError(f"BLENDSPLAT_SIMD must be scalar, avx2, avx512 or auto, got {choice!r}")
+    if choice != "auto" and choice not in simd_paths():
+        raise ValueError(f"{source}={choice!r} is not a SIMD path this CPU and build run; available: "
+                         f"{', '.join(simd_paths())} (or auto)")
     return choice
 
 
@@ -64,10 +66,14 @@ def _np(t: Tensor, dtype=torch.float32) -> np.ndarray:
     return t.detach().to(device="cpu", dtype=dtype).contiguous().numpy()
 
 
-def _check_finite(name: str, *tensors: Tensor) -> None:
-    for t in tensors:
-        if not torch.isfinite(t).all():
+def _check_finite(**tensors: Tensor | None) -> None:
+    for name, t in tensors.items():
+        if t is not None and not torch.isfinite(t).all():
             raise ShapeError("must be finite (no NaN or Inf)", field=name)
+
+
+def _check_cameras(cameras: Cameras) -> None:
+    _check_finite(**{"camera.K": cameras.K, "camera.R": cameras.R, "camera.t": cameras.t})
 
 
 def _outputs(b: int, h: int, w: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -105,7 +111,8 @@ def rasterize(
     if mode not in ("classic", "antialiased"):
         raise ValueError(f"raster mode must be 'classic' or 'antialiased', got {mode!r}")
     b = means.shape[0]
-    _check_finite("splats", means, quats, scales, opacities, colors)
+    _check_finite(means=means, quats=quats, scales=scales, opacities=opacities, colors=colors, background=background)
+    _check_cameras(cameras)
     rgb, alpha, depth = _outputs(b, cameras.height, cameras.width)
     K, R, t = _camera_arrays(cameras)
     timings = _native.rasterize(_np(means), _np(quats), _np(scales), _np(opacities), _np(colors), K, R, t,
@@ -211,7 +218,8 @@ class NativeAvatar:
             raise ShapeError(f"{b} frames need {b} cameras, got {len(cameras)}", field="cameras")
         if eyelids is None:
             eyelids = torch.zeros(b, 2)
-        _check_finite("frame", expression, joint_rotations, eyelids)
+        _check_finite(expression=expression, joint_rotations=joint_rotations, eyelids=eyelids, background=background)
+        _check_cameras(cameras)
         rgb, alpha, depth = _outputs(b, cameras.height, cameras.width)
         K, R, t = _camera_arrays(cameras)
         timings = _native.render(self.handle, _np(expression), _np(joint_rotations), _np(eyelids), K, R, t,
