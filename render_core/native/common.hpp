@@ -45,16 +45,23 @@ struct Cam {
     bool antialiased;
 };
 
-// A projected Gaussian, what the rasterizer reads (one cache line). The conic and levels are in base 2:
-// q = sigma log2(e) = 0.5 (ca dx^2 + cc dy^2) + cb dx dy, alpha = min(0.999, 2^(log2_opacity - q)).
-struct Splat {
+// A projected Gaussian as the compositing loop reads it (48 bytes). The conic and levels are in base 2:
+// q = sigma log2(e) = ha dx^2 + cb dx dy + hc dy^2, alpha = min(0.999, 2^(log2_opacity - q)).
+struct TileSplat {
     float mx, my;                // pixel-space centre
-    float ca, cb, cc;            // conic times log2(e)
+    float ha, cb, hc;            // conic times log2(e), diagonal terms halved
     float log2_opacity, depth;   // compositing opacity (antialiasing compensation included), camera z
     float r, g, b;               // colour
-    float x0, x1, y0, y1;        // pixels whose centres can pass eligibility, half-open; empty when culled
     float level;                 // log2(255 opacity): eligible only where q <= level
     float pad;
+};
+static_assert(sizeof(TileSplat) == 48, "TileSplat is 48 bytes");
+
+// The projection's output: the compositing record and the pixels whose centres can pass eligibility
+// (half-open; empty when culled), which decide the tiles it is binned into (one cache line).
+struct Splat {
+    TileSplat t;
+    float x0, x1, y0, y1;
 };
 static_assert(sizeof(Splat) == 64, "Splat is one cache line");
 
@@ -81,8 +88,8 @@ struct Kernels {
     // Projection of already posed Gaussians [n0, n1) of one frame.
     void (*project_posed)(const PosedView& pv, int b, const Cam& cam, Splat* out, int n0, int n1);
     // Front-to-back compositing of one 16x16 tile from its splats in depth order.
-    void (*raster_tile)(const Splat* splats, int count, int tx, int ty, const Cam& cam, const float* background,
-                        float* rgb, float* alpha, float* depth);
+    void (*raster_tile)(const TileSplat* splats, int count, int tx, int ty, const Cam& cam,
+                        const float* background, float* rgb, float* alpha, float* depth);
 };
 
 namespace scalar { const Kernels& kernels(); }

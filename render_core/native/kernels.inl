@@ -264,17 +264,18 @@ static inline void project(const F x[3], const Mat3& rw, const F s[3], F opacity
     const F zero = V::set1(0.0f), l2e = V::set1(kLog2e);
     const F log2_op = V::log(V::max(op, V::set1(kAlphaMin))) * l2e;
     alignas(64) float f[15][kMaxLanes];
-    const F fields[15] = {mx, my, c11 * rdet * l2e, -c01 * rdet * l2e, c00 * rdet * l2e, log2_op, p[2],
+    const F half_l2e = V::set1(0.5f * kLog2e);
+    const F fields[15] = {mx, my, c11 * rdet * half_l2e, -c01 * rdet * l2e, c00 * rdet * half_l2e, log2_op, p[2],
                           rgb[0], rgb[1], rgb[2], V::select(valid, x0, zero), V::select(valid, x1, zero),
                           V::select(valid, y0, zero), V::select(valid, y1, zero),
                           V::max(log2_op + V::set1(7.994353436858858f), zero)};  // log2(255 o)
     for (int i = 0; i < 15; ++i) V::store(f[i], fields[i]);
     for (int l = 0; l < lanes; ++l) {
         Splat& o = out[l];
-        o.mx = f[0][l], o.my = f[1][l], o.ca = f[2][l], o.cb = f[3][l], o.cc = f[4][l];
-        o.log2_opacity = f[5][l], o.depth = f[6][l], o.r = f[7][l], o.g = f[8][l], o.b = f[9][l];
+        o.t.mx = f[0][l], o.t.my = f[1][l], o.t.ha = f[2][l], o.t.cb = f[3][l], o.t.hc = f[4][l];
+        o.t.log2_opacity = f[5][l], o.t.depth = f[6][l], o.t.r = f[7][l], o.t.g = f[8][l], o.t.b = f[9][l];
+        o.t.level = f[14][l], o.t.pad = 0.0f;
         o.x0 = f[10][l], o.x1 = f[11][l], o.y0 = f[12][l], o.y1 = f[13][l];
-        o.level = f[14][l], o.pad = 0.0f;
     }
 }
 
@@ -364,8 +365,8 @@ static void project_posed(const PosedView& pv, int b, const Cam& cam, Splat* out
 // 0.05 px) is computed, W Gaussians at a time. Then each segment scans the spans W at a time and composites
 // only the Gaussians that reach it, in depth order, branch-free, with its transmittance, colour and depth in
 // registers, until all its pixels have stopped.
-static void raster_tile(const Splat* splats, int count, int tx, int ty, const Cam& cam, const float* background,
-                        float* rgb, float* alpha, float* depth) {
+static void raster_tile(const TileSplat* splats, int count, int tx, int ty, const Cam& cam,
+                        const float* background, float* rgb, float* alpha, float* depth) {
     constexpr int NS = kTile / W;  // segments per row
     const int xb = tx * kTile, yb = ty * kTile;
     const int xe = std::min(xb + kTile, cam.width), ye = std::min(yb + kTile, cam.height);
@@ -373,28 +374,25 @@ static void raster_tile(const Splat* splats, int count, int tx, int ty, const Ca
     const int cpad = (count + W - 1) / W * W;
     static thread_local std::vector<float> scratch_tls;
     std::vector<float>& scratch = scratch_tls;
-    if (scratch.size() < size_t(cpad) * (8 + 2 * kTile)) scratch.resize(size_t(cpad) * (8 + 2 * kTile));
-    // Per Gaussian (structure of arrays): my, span centre at dy = 0, shear, 1/ca, k2, k0, and the box clipped to
-    // the tile (padding lanes get an empty box); then the spans of every row.
+    if (scratch.size() < size_t(cpad) * (6 + 2 * kTile)) scratch.resize(size_t(cpad) * (6 + 2 * kTile));
+    // Per Gaussian (structure of arrays): my, span centre at dy = 0, shear, 1/a, k2, k0 (padding lanes: no span);
+    // then the spans of every row.
     float* my = scratch.data();
     float* xc0 = my + cpad;
     float* shear = xc0 + cpad;
     float* ia = shear + cpad;
     float* k2 = ia + cpad;
     float* k0 = k2 + cpad;
-    float* boxlo = k0 + cpad;
-    float* boxhi = boxlo + cpad;
-    float* lo = boxhi + cpad;
+    float* lo = k0 + cpad;
     float* hi = lo + size_t(kTile) * cpad;
     for (int i = 0; i < cpad; ++i) {
         if (i < count) {
-            const Splat& s = splats[i];
-            my[i] = s.my, xc0[i] = s.mx - 0.5f, ia[i] = 1.0f / s.ca, shear[i] = s.cb / s.ca;
-            k2[i] = s.cb * s.cb - s.ca * s.cc, k0[i] = 2.0f * s.ca * s.level;
-            boxlo[i] = float(std::max(int(s.x0), xb)), boxhi[i] = float(std::min(int(s.x1), xe) - 1);
+            // q <= level on row dy: a dx^2 + 2 b dy dx + c dy^2 - 2 level <= 0 with a = 2 ha, b = cb, c = 2 hc.
+            const TileSplat& s = splats[i];
+            my[i] = s.my, xc0[i] = s.mx - 0.5f, ia[i] = 0.5f / s.ha, shear[i] = 0.5f * s.cb / s.ha;
+            k2[i] = s.cb * s.cb - 4.0f * s.ha * s.hc, k0[i] = 4.0f * s.ha * s.level;
         } else {
             my[i] = xc0[i] = shear[i] = k2[i] = 0.0f, ia[i] = 1.0f, k0[i] = -1.0f;
-            boxlo[i] = 1e9f, boxhi[i] = -1e9f;
         }
     }
     const F big = V::set1(1e9f), zero = V::set1(0.0f);
@@ -405,8 +403,8 @@ static void raster_tile(const Splat* splats, int count, int tx, int ty, const Ca
             const F disc = V::fma(dy * dy, V::load(k2 + c), V::load(k0 + c));
             const F half = V::fma(V::sqrt(V::max(disc, zero)), V::load(ia + c), V::set1(0.05f));
             const F xc = V::fma(V::load(shear + c), dy, V::load(xc0 + c));
-            const F l = V::max(V::ceil(xc - half), V::load(boxlo + c));
-            const F h = V::min(V::floor(xc + half), V::load(boxhi + c));
+            const F l = V::ceil(xc - half);
+            const F h = V::floor(xc + half);
             const M empty = V::mor(V::lt(disc, zero), V::gt(l, h));
             V::store(lo + size_t(r) * cpad + c, V::select(empty, big, l));
             V::store(hi + size_t(r) * cpad + c, V::select(empty, -big, h));
@@ -427,12 +425,11 @@ static void raster_tile(const Splat* splats, int count, int tx, int ty, const Ca
         for (int c = 0; c < cpad && V::any(live); c += W) {
             unsigned reach = V::bits(V::mand(V::le(V::load(row_lo + c), seg_hi), V::ge(V::load(row_hi + c), seg_lo)));
             while (reach) {
-                const Splat& s = splats[c + __builtin_ctz(reach)];
+                const TileSplat& s = splats[c + __builtin_ctz(reach)];
                 reach &= reach - 1;
                 const float dy = s.my - yc;
                 const F dx = V::set1(s.mx) - px;
-                const F q = V::fma(dx, V::fma(V::set1(0.5f * s.ca), dx, V::set1(s.cb * dy)),
-                                   V::set1(0.5f * s.cc * dy * dy));
+                const F q = V::fma(dx, V::fma(V::set1(s.ha), dx, V::set1(s.cb * dy)), V::set1(s.hc * dy * dy));
                 const F a = V::min(amax, V::exp2(V::set1(s.log2_opacity) - q));
                 const M ok = V::mand(live, V::mand(V::ge(q, zero), V::ge(a, amin)));
                 const F nt = T * (one - a);

@@ -64,7 +64,7 @@ void sort_by_depth(const Splat* splats, std::vector<uint32_t>& idx, std::vector<
     keys.resize(n);
     tmp_keys.resize(n);
     tmp.resize(n);
-    for (size_t i = 0; i < n; ++i) std::memcpy(&keys[i], &splats[idx[i]].depth, 4);
+    for (size_t i = 0; i < n; ++i) std::memcpy(&keys[i], &splats[idx[i]].t.depth, 4);
     const int shifts[3] = {0, 11, 22};
     for (int pass = 0; pass < 3; ++pass) {
         const int sh = shifts[pass];
@@ -84,7 +84,8 @@ void sort_by_depth(const Splat* splats, std::vector<uint32_t>& idx, std::vector<
 struct FrameBins {
     std::vector<uint32_t> order, tmp, keys, tmp_keys, tile_offsets;
     std::vector<uint32_t> counts;  // [threads, tiles]
-    std::vector<Splat> sorted, binned;
+    std::vector<Splat> sorted;
+    std::vector<TileSplat> binned;
 };
 
 // Visible splats of one frame, depth-sorted, copied tile by tile into fb.binned (each tile's records contiguous
@@ -111,6 +112,7 @@ void bin_frame(const Splat* s, int n, int tiles_x, int tiles, FrameBins& fb, int
         const int i0 = int(int64_t(m) * t / nt), i1 = int(int64_t(m) * (t + 1) / nt);
         uint32_t* cnt = counts + size_t(t) * tiles;
         for (int i = i0; i < i1; ++i) {
+            if (i + 16 < i1) __builtin_prefetch(&s[order[i + 16]]);
             sorted[i] = s[order[i]];
             int tx0, tx1, ty0, ty1;
             tile_range(sorted[i], tx0, tx1, ty0, ty1);
@@ -133,12 +135,12 @@ void bin_frame(const Splat* s, int n, int tiles_x, int tiles, FrameBins& fb, int
             fb.tile_offsets[tiles] = run;
             fb.binned.resize(run);
         }
-        Splat* binned = fb.binned.data();
+        TileSplat* binned = fb.binned.data();
         for (int i = i0; i < i1; ++i) {
             int tx0, tx1, ty0, ty1;
             tile_range(sorted[i], tx0, tx1, ty0, ty1);
             for (int ty = ty0; ty <= ty1; ++ty)
-                for (int tx = tx0; tx <= tx1; ++tx) binned[cnt[ty * tiles_x + tx]++] = sorted[i];
+                for (int tx = tx0; tx <= tx1; ++tx) binned[cnt[ty * tiles_x + tx]++] = sorted[i].t;
         }
     }
 }
