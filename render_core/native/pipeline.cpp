@@ -84,27 +84,27 @@ void sort_by_depth(const Splat* splats, std::vector<uint32_t>& idx, std::vector<
 struct FrameBins {
     std::vector<uint32_t> order, tmp, keys, tmp_keys, tile_offsets;
     std::vector<uint32_t> counts;  // [threads, tiles]
-    std::vector<Splat> sorted;
     std::vector<TileSplat> binned;
 };
 
-// Visible splats of one frame, depth-sorted, copied tile by tile into fb.binned (each tile's records contiguous
-// and in depth order, ties by index), so that compositing streams through memory.
+// Visible splats of one frame, depth-sorted (ties by index), copied tile by tile into fb.binned (each tile's
+// records contiguous and in depth order) so that compositing streams through memory.
 void bin_frame(const Splat* s, int n, int tiles_x, int tiles, FrameBins& fb, int threads) {
     fb.order.clear();
     for (int i = 0; i < n; ++i)
         if (s[i].x0 < s[i].x1) fb.order.push_back(uint32_t(i));
     sort_by_depth(s, fb.order, fb.tmp, fb.keys, fb.tmp_keys);
     const int m = int(fb.order.size());
-    fb.sorted.resize(m);
     fb.counts.assign(size_t(threads) * tiles, 0);
     fb.tile_offsets.assign(tiles + 1, 0);
-    Splat* sorted = fb.sorted.data();
     const uint32_t* order = fb.order.data();
     uint32_t* counts = fb.counts.data();
-    auto tile_range = [&](const Splat& g, int& tx0, int& tx1, int& ty0, int& ty1) {
+    constexpr int kAhead = 16;  // depth order visits the splats at random: prefetch
+    auto tiles_of = [&](int i, int& tx0, int& tx1, int& ty0, int& ty1) -> const Splat& {
+        const Splat& g = s[order[i]];
         tx0 = int(g.x0) / kTile, tx1 = (int(g.x1) - 1) / kTile;
         ty0 = int(g.y0) / kTile, ty1 = (int(g.y1) - 1) / kTile;
+        return g;
     };
 #pragma omp parallel num_threads(threads)
     {
@@ -112,10 +112,9 @@ void bin_frame(const Splat* s, int n, int tiles_x, int tiles, FrameBins& fb, int
         const int i0 = int(int64_t(m) * t / nt), i1 = int(int64_t(m) * (t + 1) / nt);
         uint32_t* cnt = counts + size_t(t) * tiles;
         for (int i = i0; i < i1; ++i) {
-            if (i + 16 < i1) __builtin_prefetch(&s[order[i + 16]]);
-            sorted[i] = s[order[i]];
+            if (i + kAhead < i1) __builtin_prefetch(&s[order[i + kAhead]]);
             int tx0, tx1, ty0, ty1;
-            tile_range(sorted[i], tx0, tx1, ty0, ty1);
+            tiles_of(i, tx0, tx1, ty0, ty1);
             for (int ty = ty0; ty <= ty1; ++ty)
                 for (int tx = tx0; tx <= tx1; ++tx) ++cnt[ty * tiles_x + tx];
         }
@@ -137,10 +136,11 @@ void bin_frame(const Splat* s, int n, int tiles_x, int tiles, FrameBins& fb, int
         }
         TileSplat* binned = fb.binned.data();
         for (int i = i0; i < i1; ++i) {
+            if (i + kAhead < i1) __builtin_prefetch(&s[order[i + kAhead]]);
             int tx0, tx1, ty0, ty1;
-            tile_range(sorted[i], tx0, tx1, ty0, ty1);
+            const TileSplat& g = tiles_of(i, tx0, tx1, ty0, ty1).t;
             for (int ty = ty0; ty <= ty1; ++ty)
-                for (int tx = tx0; tx <= tx1; ++tx) binned[cnt[ty * tiles_x + tx]++] = sorted[i].t;
+                for (int tx = tx0; tx <= tx1; ++tx) binned[cnt[ty * tiles_x + tx]++] = g;
         }
     }
 }
