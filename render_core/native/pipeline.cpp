@@ -57,43 +57,83 @@ void joint_transforms(const AvatarView& av, const float* rot, float* A) {
     }
 }
 
-// Stable LSD radix sort of indices by the bits of positive float keys (ties keep index order).
-void sort_by_depth(const Splat* splats, std::vector<uint32_t>& idx, std::vector<uint32_t>& tmp,
-                   std::vector<uint32_t>& keys, std::vector<uint32_t>& tmp_keys) {
-    const size_t n = idx.size();
-    keys.resize(n);
-    tmp_keys.resize(n);
-    tmp.resize(n);
-    for (size_t i = 0; i < n; ++i) std::memcpy(&keys[i], &splats[idx[i]].t.depth, 4);
-    const int shifts[3] = {0, 11, 22};
-    for (int pass = 0; pass < 3; ++pass) {
-        const int sh = shifts[pass];
-        uint32_t count[2048 + 1] = {0};
-        for (size_t i = 0; i < n; ++i) ++count[((keys[i] >> sh) & 2047u) + 1];
-        for (int b = 0; b < 2048; ++b) count[b + 1] += count[b];
-        for (size_t i = 0; i < n; ++i) {
-            const uint32_t dst = count[(keys[i] >> sh) & 2047u]++;
-            tmp[dst] = idx[i];
-            tmp_keys[dst] = keys[i];
-        }
-        idx.swap(tmp);
-        keys.swap(tmp_keys);
-    }
-}
-
 struct FrameBins {
     std::vector<uint32_t> order, tmp, keys, tmp_keys, tile_offsets;
     std::vector<uint32_t> counts;  // [threads, tiles]
+    std::vector<uint32_t> hist;    // [threads, 2048]
     std::vector<TileSplat> binned;
 };
+
+// fb.order = indices of the visible splats sorted by depth, ties in index order: a stable LSD radix sort
+// (3 passes of 11 bits over the bits of the positive float depths), each pass split across the threads.
+void sort_visible_by_depth(const Splat* s, int n, FrameBins& fb, int threads) {
+    constexpr int kBuckets = 2048;
+    fb.order.resize(n), fb.keys.resize(n), fb.tmp.resize(n), fb.tmp_keys.resize(n);
+    fb.hist.assign(size_t(threads) * kBuckets + threads + 1, 0);
+    uint32_t* visible = fb.hist.data() + size_t(threads) * kBuckets;  // [threads + 1] counts, then offsets
+    int m = 0;
+#pragma omp parallel num_threads(threads)
+    {
+        const int t = omp_get_thread_num(), nt = omp_get_num_threads();
+        const int i0 = int(int64_t(n) * t / nt), i1 = int(int64_t(n) * (t + 1) / nt);
+        uint32_t c = 0;
+        for (int i = i0; i < i1; ++i) c += s[i].x0 < s[i].x1;
+        visible[t + 1] = c;
+#pragma omp barrier
+#pragma omp single
+        {
+            for (int u = 0; u < nt; ++u) visible[u + 1] += visible[u];
+            m = int(visible[nt]);
+        }
+        uint32_t pos = visible[t];
+        for (int i = i0; i < i1; ++i) {
+            if (!(s[i].x0 < s[i].x1)) continue;
+            fb.order[pos] = uint32_t(i);
+            std::memcpy(&fb.keys[pos], &s[i].t.depth, 4);
+            ++pos;
+        }
+        const int j0 = int(int64_t(m) * t / nt), j1 = int(int64_t(m) * (t + 1) / nt);
+        uint32_t* h = fb.hist.data() + size_t(t) * kBuckets;
+        for (int sh = 0; sh < 32; sh += 11) {
+#pragma omp barrier
+            const uint32_t* idx = fb.order.data();
+            const uint32_t* key = fb.keys.data();
+            std::fill(h, h + kBuckets, 0u);
+            for (int j = j0; j < j1; ++j) ++h[(key[j] >> sh) & (kBuckets - 1)];
+#pragma omp barrier
+#pragma omp single
+            {
+                uint32_t run = 0;  // bucket-major, then thread: stable
+                for (int b = 0; b < kBuckets; ++b)
+                    for (int u = 0; u < nt; ++u) {
+                        uint32_t& v = fb.hist[size_t(u) * kBuckets + b];
+                        const uint32_t c2 = v;
+                        v = run;
+                        run += c2;
+                    }
+            }
+            uint32_t* out_idx = fb.tmp.data();
+            uint32_t* out_key = fb.tmp_keys.data();
+            for (int j = j0; j < j1; ++j) {
+                const uint32_t dst = h[(key[j] >> sh) & (kBuckets - 1)]++;
+                out_idx[dst] = idx[j], out_key[dst] = key[j];
+            }
+#pragma omp barrier
+#pragma omp single
+            {
+                fb.order.swap(fb.tmp);
+                fb.keys.swap(fb.tmp_keys);
+            }
+        }
+    }
+    fb.order.resize(m);
+}
+
 
 // Visible splats of one frame, depth-sorted (ties by index), copied tile by tile into fb.binned (each tile's
 // records contiguous and in depth order) so that compositing streams through memory.
 void bin_frame(const Splat* s, int n, int tiles_x, int tiles, FrameBins& fb, int threads) {
-    fb.order.clear();
-    for (int i = 0; i < n; ++i)
-        if (s[i].x0 < s[i].x1) fb.order.push_back(uint32_t(i));
-    sort_by_depth(s, fb.order, fb.tmp, fb.keys, fb.tmp_keys);
+    sort_visible_by_depth(s, n, fb, threads);
     const int m = int(fb.order.size());
     fb.counts.assign(size_t(threads) * tiles, 0);
     fb.tile_offsets.assign(tiles + 1, 0);
