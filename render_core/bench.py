@@ -97,9 +97,7 @@ def bench_render(
 ) -> dict:
     """Time ``frames`` frames (after ``warmup``) of ``streams`` batched streams; returns the JSON report."""
     if avatar is None:
-        avatar = synth_avatar(gaussians, blendshapes, seed=seed, sh_degree=sh_degree)
-        if precision == "fp16":
-            avatar = avatar.to(torch.float16)
+        avatar = synth_avatar(gaussians, blendshapes, seed=seed, sh_degree=sh_degree).with_precision(precision)
     renderer = AvatarRenderer(avatar, backend, threads=threads)
     cams = framed_camera(avatar, size).expand(streams)
     g = torch.Generator().manual_seed(seed + 1)
@@ -115,7 +113,7 @@ def bench_render(
         "size": size,
         "streams": streams,
         "sh_degree": avatar.sh_degree,
-        "precision": "fp16" if avatar.dtype == torch.float16 else "fp32",
+        "precision": avatar.precision,
         "raster_mode": avatar.raster_mode,
         "coverage": timed["coverage"],
         "fps": round(fps, 3),

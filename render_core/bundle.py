@@ -15,8 +15,9 @@ Tensors (N face Gaussians, K blendshapes, J joints, M mouth Gaussians, C = (sh_d
     mouth_group [M] I64                  lbs_weights [N, J] F32               joint_positions [J, 3] F32
     pose_correctives [9 (J-1), N, 3]     eyelid_offsets [2, N, 3]             (both optional)
 
-The Gaussian, delta, mouth, corrective and eyelid tensors are all F32 or all F16 (manifest ``precision``);
-fp16 tensors stay fp16 in the loaded :class:`Avatar` and compute code casts.
+The blendshape data - delta, corrective and eyelid tensors - is all F32 or all F16 (manifest ``precision``); the
+neutral and mouth Gaussians are always F32. fp16 tensors stay fp16 in the loaded :class:`Avatar` and compute
+code casts.
 
 The manifest is a JSON object: ``format`` ("blendsplat-avatar"), ``schema_version``, ``face_model``,
 ``expression_names`` (in order), ``joint_names``, ``joint_parents``, ``mouth_joint_names`` (upper, lower),
@@ -103,7 +104,8 @@ def write_bundle(
 ) -> dict[str, Any]:
     """Write ``avatar`` to ``path`` as one bundle file and return its manifest.
 
-    ``precision="fp16"`` stores the Gaussian, delta, mouth, corrective and eyelid tensors in float16;
+    ``precision="fp16"`` stores the delta, corrective and eyelid tensors in float16 (the neutral and mouth
+    Gaussians stay float32);
     ``lbs_weights`` and ``joint_positions`` stay float32 and ``mouth_group`` int64. ``provenance`` gains
     ``created_at`` (ISO 8601, UTC) and ``blendsplat_version`` where absent.
 
@@ -131,7 +133,6 @@ def write_bundle(
 
 def _tensors_for_write(avatar: Avatar, precision: str) -> dict[str, Tensor]:
     """The bundle's tensors, contiguous on the CPU in their stored dtypes; refuses non-finite values."""
-    store = _DTYPES[_PRECISION_DTYPE[precision]]
     source: dict[str, Tensor] = {}
     for group in _GROUP_LEADS:
         for key, t in getattr(avatar, group).tensors().items():
@@ -143,7 +144,7 @@ def _tensors_for_write(avatar: Avatar, precision: str) -> dict[str, Tensor]:
     for name, t in source.items():
         if not t.is_floating_point():
             raise BundleError(f"expected a floating-point tensor, got {t.dtype}", field=name)
-        out[name] = _cast_finite(name, t, store)
+        out[name] = _cast_finite(name, t, _DTYPES[_stored_dtype(name, precision)])
     out["lbs_weights"] = _cast_finite("lbs_weights", avatar.lbs_weights, torch.float32)
     out["joint_positions"] = _cast_finite("joint_positions", avatar.joint_positions, torch.float32)
     if avatar.mouth_group.is_floating_point() or avatar.mouth_group.dtype == torch.bool:
@@ -679,11 +680,12 @@ def _resolve(symbols: tuple[str, ...], counts: dict[str, int], sh_degree: int) -
 
 
 def _stored_dtype(name: str, precision: str) -> str:
-    if name in ("lbs_weights", "joint_positions"):
-        return "F32"
+    """Blendshape data (deltas, correctives, eyelids) in the bundle's precision; everything else fixed."""
     if name == "mouth_group":
         return "I64"
-    return _PRECISION_DTYPE[precision]
+    if name.startswith("deltas.") or name in _OPTIONAL:
+        return _PRECISION_DTYPE[precision]
+    return "F32"
 
 
 def _check_tensor_table(m: dict[str, Any], table: dict[str, tuple[str, tuple[int, ...]]]) -> None:

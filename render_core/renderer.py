@@ -37,8 +37,8 @@ class AvatarRenderer:
         self.simd, self.threads = simd, threads
         self.native = native.NativeAvatar(avatar, precision) if self.backend == "native" else None
         # The reference path computes in float32 whatever the storage; cast fp16 avatars once, not per frame.
-        needs_cast = self.native is None and avatar.dtype != torch.float32
-        self._compute_avatar = avatar.to(torch.float32) if needs_cast else avatar
+        needs_cast = self.native is None and avatar.precision != "fp32"
+        self._compute_avatar = avatar.with_precision("fp32") if needs_cast else avatar
 
     @property
     def stats(self) -> native.PackStats | None:

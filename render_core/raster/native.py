@@ -153,7 +153,7 @@ class NativeAvatar:
     def __init__(self, avatar: Avatar, precision: str | None = None):
         _require()
         if precision is None:
-            precision = "fp16" if avatar.dtype == torch.float16 else "fp32"
+            precision = avatar.precision
         if precision not in PRECISIONS:
             raise ValueError(f"precision must be one of {PRECISIONS}, got {precision!r}")
         store = torch.float16 if precision == "fp16" else torch.float32
