@@ -271,7 +271,7 @@ Timings render_fused(const AvatarView& av, const float* psi, const float* rot, c
         std::vector<float>& rows = rows_tls;
         rows.resize(size_t(std::min(B, kMaxBatch)) * kFuse * av.Dp);
         const int tid = omp_get_thread_num();
-#pragma omp for schedule(static)
+#pragma omp for schedule(dynamic, 2)  // chunks differ in cost: the mouth has no blendshapes
         for (int c = 0; c < chunks; ++c) {
             const int n0 = c * kFuse, n1 = std::min(av.n_total, n0 + kFuse);
             for (int b0 = 0; b0 < B; b0 += kMaxBatch) {
