@@ -260,9 +260,9 @@ class Frame:
             err = (rd @ rd.transpose(-1, -2) - torch.eye(3, dtype=torch.float64, device=rd.device)).abs()
             per_joint = err.amax(dim=(0, 2, 3))
             det = torch.linalg.det(rd).amin(dim=0)
-            bad = [avatar.joint_names[i] for i in range(j)
-                   if per_joint[i] > _ROTATION_TOL or det[i] < 1 - _ROTATION_TOL]
-            if bad:
+            bad_mask = (per_joint > _ROTATION_TOL) | (det < 1 - _ROTATION_TOL)
+            if bool(bad_mask.any()):
+                bad = [avatar.joint_names[i] for i in bad_mask.nonzero().flatten().tolist()]
                 raise FrameError(f"not rotation matrices for joint(s) {_list(bad)}", field="joint_rotations")
 
 
