@@ -20,6 +20,26 @@ constexpr int kMaxLanes = 16;
 
 // ------------------------------------------------------------------------------------------------ blend
 
+// acc[g][0..DP) += sum_j psi[g][col[j]] vals[j] for GB frames g, two vectors of the row at a time.
+template <class T, int DP, int GB>
+static inline void blend_group(const AvatarView& av, const float* psi, const T* vals, int j0, int j1, float* acc) {
+    for (int d = 0; d < DP; d += 2 * W) {
+        F a[GB][2];
+        for (int g = 0; g < GB; ++g) a[g][0] = V::load(acc + g * DP + d), a[g][1] = V::load(acc + g * DP + d + W);
+        for (int j = j0; j < j1; ++j) {
+            const int k = av.col[j];
+            const T* v = vals + size_t(j) * av.D + d;
+            const F x0 = V::load(v), x1 = V::load(v + W);
+            for (int g = 0; g < GB; ++g) {
+                const F p = V::set1(psi[g * av.K + k]);
+                a[g][0] = V::fma(p, x0, a[g][0]);
+                a[g][1] = V::fma(p, x1, a[g][1]);
+            }
+        }
+        for (int g = 0; g < GB; ++g) V::store(acc + g * DP + d, a[g][0]), V::store(acc + g * DP + d + W, a[g][1]);
+    }
+}
+
 template <class T, int DP>
 static void blend_t(const AvatarView& av, const float* psi, const float* pose_feat, const float* eyelids, int B,
                     float* out, int out_stride, int n0, int n1) {
@@ -34,22 +54,18 @@ static void blend_t(const AvatarView& av, const float* psi, const float* pose_fe
     for (int n = n0; n < n1; ++n) {
         const float* base = av.base + size_t(n) * DP;
         for (int b = 0; b < B; ++b) std::memcpy(acc + b * DP, base, sizeof(float) * DP);
-        for (int j = av.row_ptr[n]; j < av.row_ptr[n + 1]; ++j) {
-            const int k = av.col[j];
-            const T* v = vals + size_t(j) * av.D;
-            if (B == 1) {
-                const F w = V::set1(psi[k]);
+        const int j0 = av.row_ptr[n], j1 = av.row_ptr[n + 1];
+        if (B == 1) {  // the whole row's accumulators in registers
+            for (int j = j0; j < j1; ++j) {
+                const F w = V::set1(psi[av.col[j]]);
+                const T* v = vals + size_t(j) * av.D;
 #pragma GCC unroll 16
                 for (int d = 0; d < DP; d += W) V::store(acc + d, V::fma(w, V::load(v + d), V::load(acc + d)));
-            } else {
-                for (int d = 0; d < DP; d += W) {
-                    const F vd = V::load(v + d);
-                    for (int b = 0; b < B; ++b) {
-                        float* a = acc + b * DP + d;
-                        V::store(a, V::fma(V::set1(psi[b * av.K + k]), vd, V::load(a)));
-                    }
-                }
             }
+        } else {  // groups of up to 4 frames x 2 vectors of accumulators in registers; the row stays in L1
+            int b = 0;
+            for (; b + 4 <= B; b += 4) blend_group<T, DP, 4>(av, psi + b * av.K, vals, j0, j1, acc + b * DP);
+            for (; b < B; ++b) blend_group<T, DP, 1>(av, psi + b * av.K, vals, j0, j1, acc + b * DP);
         }
         if (pc != nullptr && n < av.n_face) {
             for (int b = 0; b < B; ++b) {
