@@ -127,7 +127,8 @@ def bench_render(
     }
     if renderer.native is not None:
         stats = renderer.stats
-        probe = native.bandwidth_probe(stats.blend_bytes, threads)
+        # Best of three probes (each the best of five passes): the machine is shared, a single probe can read low.
+        probe = max((native.bandwidth_probe(stats.blend_bytes, threads) for _ in range(3)), key=lambda p: p["gbps"])
         bound_ms = stats.blend_bytes / (probe["gbps"] * 1e9) * 1e3
         report["simd"] = timed["last_timings"].get("isa")
         report["blend"] = {
