@@ -270,7 +270,7 @@ static inline void project(const F x[3], const Mat3& rw, const F s[3], F opacity
     F mx = V::fma(V::set1(cam.fx), p[0] * rz, V::set1(cam.cx));
     F my = V::fma(V::set1(cam.fy), p[1] * rz, V::set1(cam.cy));
     // Pixels whose centres can pass alpha >= 1/255: inside mean +- sqrt(2 ln(255 o) diag S) (+0.01 px).
-    F level = V::max(V::set1(2.0f) * V::log(V::max(op, V::set1(kAlphaMin)) * V::set1(255.0f)), V::set1(0.0f));
+    F level = V::max(V::set1(2.0f) * vlog<V>(V::max(op, V::set1(kAlphaMin)) * V::set1(255.0f)), V::set1(0.0f));
     F hx = V::sqrt(level * c00) + V::set1(0.01f), hy = V::sqrt(level * c11) + V::set1(0.01f);
     F x0 = V::max(V::ceil(mx - hx - V::set1(0.5f)), V::set1(0.0f));
     F x1 = V::min(V::floor(mx + hx - V::set1(0.5f)) + V::set1(1.0f), V::set1(float(cam.width)));
@@ -278,7 +278,7 @@ static inline void project(const F x[3], const Mat3& rw, const F s[3], F opacity
     F y1 = V::min(V::floor(my + hy - V::set1(0.5f)) + V::set1(1.0f), V::set1(float(cam.height)));
     valid = V::mand(valid, V::mand(V::lt(x0, x1), V::lt(y0, y1)));
     const F zero = V::set1(0.0f), l2e = V::set1(kLog2e);
-    const F log2_op = V::log(V::max(op, V::set1(kAlphaMin))) * l2e;
+    const F log2_op = vlog<V>(V::max(op, V::set1(kAlphaMin))) * l2e;
     alignas(64) float f[15][kMaxLanes];
     const F half_l2e = V::set1(0.5f * kLog2e);
     const F fields[15] = {mx, my, c11 * rdet * half_l2e, -c01 * rdet * l2e, c00 * rdet * half_l2e, log2_op, p[2],
@@ -336,8 +336,8 @@ static void deform_project(const AvatarView& av, const float* blended, const flo
         normalize4(qw);
         Mat3 rw = quat_to_matrix(qw);
         F s[3];
-        for (int c = 0; c < 3; ++c) s[c] = V::exp(V::load(buf + (7 + c) * W));
-        F opacity = V::set1(1.0f) / (V::set1(1.0f) + V::exp(-V::load(buf + 10 * W)));
+        for (int c = 0; c < 3; ++c) s[c] = vexp<V>(V::load(buf + (7 + c) * W));
+        F opacity = V::set1(1.0f) / (V::set1(1.0f) + vexp<V>(-V::load(buf + 10 * W)));
         // View direction in the Gaussian's rest frame: R_n^T normalise(x - centre).
         F d[3] = {x[0] - V::set1(cam.centre[0]), x[1] - V::set1(cam.centre[1]), x[2] - V::set1(cam.centre[2])};
         F inv = V::set1(1.0f) / V::max(V::sqrt(dot3(d[0], d[1], d[2], d[0], d[1], d[2])), V::set1(1e-12f));
@@ -446,7 +446,7 @@ static void raster_tile(const TileSplat* splats, int count, int tx, int ty, cons
                 const float dy = s.my - yc;
                 const F dx = V::set1(s.mx) - px;
                 const F q = V::fma(dx, V::fma(V::set1(s.ha), dx, V::set1(s.cb * dy)), V::set1(s.hc * dy * dy));
-                const F a = V::min(amax, V::exp2(V::set1(s.log2_opacity) - q));
+                const F a = V::min(amax, vexp2<V>(V::set1(s.log2_opacity) - q));
                 const M ok = V::mand(live, V::mand(V::ge(q, zero), V::ge(a, amin)));
                 const F nt = T * (one - a);
                 const M stop = V::mand(ok, V::le(nt, tstop));

@@ -69,9 +69,6 @@ struct Scalar {
     static F sqrt(F a) { return std::sqrt(a); }
     static F floor(F a) { return std::floor(a); }
     static F ceil(F a) { return std::ceil(a); }
-    static F exp(F a) { return std::exp(a); }
-    static F exp2(F a) { return std::exp2(a); }
-    static F log(F a) { return std::log(a); }
     static F abs(F a) { return std::fabs(a); }
     static M lt(F a, F b) { return a < b; }
     static M le(F a, F b) { return a <= b; }
@@ -147,50 +144,19 @@ struct Avx2 {
         s = _mm_add_ss(s, _mm_movehdup_ps(s));
         return _mm_cvtss_f32(s);
     }
-    static F exp(F x) {
-        x = min(max(x, set1(kExpLo)), set1(kExpHi));
-        F fx = floor(fma(x, set1(kLog2e), set1(0.5f)));
-        x = x - fx * set1(kExpC1) - fx * set1(kExpC2);
-        F z = x * x;
-        F y = fma(set1(kExpP0), x, set1(kExpP1));
-        y = fma(y, x, set1(kExpP2));
-        y = fma(y, x, set1(kExpP3));
-        y = fma(y, x, set1(kExpP4));
-        y = fma(y, x, set1(kExpP5));
-        y = fma(y, z, x + set1(1.0f));
-        __m256i e = _mm256_slli_epi32(_mm256_add_epi32(_mm256_cvttps_epi32(fx.v), _mm256_set1_epi32(127)), 23);
-        return y * F(_mm256_castsi256_ps(e));
+    // y * 2^n for integral n (added to the exponent bits).
+    static F ldexp(F y, F n) {
+        return F(_mm256_castsi256_ps(_mm256_add_epi32(_mm256_castps_si256(y.v),
+                                                       _mm256_slli_epi32(_mm256_cvtps_epi32(n.v), 23))));
     }
-    // 2^t for t <= 1 (clamped below at -126): t = n + f, |f| <= 0.5, 2^f by its Taylor series to degree 5
-    // (< 3e-6 relative).
-    static F exp2(F t) {
-        t = max(t, set1(-126.0f));  // callers keep t <= 1
-        F n = _mm256_round_ps(t.v, _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC);
-        F f = t - n;
-        // Estrin's scheme: a shorter dependency chain than Horner's (this sits on the compositing loop's path).
-        F f2 = f * f;
-        F p = fma(f2 * f2, fma(set1(kExp2C5), f, set1(kExp2C4)),
-                  fma(f2, fma(set1(kExp2C3), f, set1(kExp2C2)), fma(set1(kExp2C1), f, set1(1.0f))));
-        __m256i e = _mm256_slli_epi32(_mm256_cvtps_epi32(n.v), 23);
-        return F(_mm256_castsi256_ps(_mm256_add_epi32(_mm256_castps_si256(p.v), e)));
+    // x = m 2^e with m in [0.5, 1), for finite x > 0.
+    static F frexp(F x, F& e) {
+        const __m256i bits = _mm256_castps_si256(x.v);
+        e = _mm256_cvtepi32_ps(_mm256_sub_epi32(_mm256_srli_epi32(bits, 23), _mm256_set1_epi32(126)));
+        return F(_mm256_castsi256_ps(_mm256_or_si256(_mm256_and_si256(bits, _mm256_set1_epi32(0x007fffff)),
+                                                      _mm256_set1_epi32(0x3f000000))));
     }
-    static F log(F x) {  // x > 0
-        __m256i bits = _mm256_castps_si256(x.v);
-        __m256i e = _mm256_sub_epi32(_mm256_srli_epi32(bits, 23), _mm256_set1_epi32(126));
-        F m(_mm256_castsi256_ps(_mm256_or_si256(_mm256_and_si256(bits, _mm256_set1_epi32(0x007fffff)),
-                                                 _mm256_set1_epi32(0x3f000000))));  // [0.5, 1)
-        F ef(_mm256_cvtepi32_ps(e));
-        M small = lt(m, set1(kSqrtHalf));
-        ef = select(small, ef - set1(1.0f), ef);
-        m = select(small, m + m, m) - set1(1.0f);
-        F z = m * m;
-        F y = set1(kLogP[0]);
-        for (int i = 1; i < 9; ++i) y = fma(y, m, set1(kLogP[i]));
-        y = y * m * z;
-        y = fma(ef, set1(kExpC2), y);
-        y = fma(set1(-0.5f), z, y);
-        return fma(ef, set1(kExpC1), m + y);
-    }
+    static F round(F x) { return _mm256_round_ps(x.v, _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC); }
 };
 #endif
 
@@ -245,49 +211,75 @@ struct Avx512 {
     static unsigned bits(M m) { return unsigned(m.k); }
     static F select(M m, F a, F b) { return _mm512_mask_blend_ps(m.k, b.v, a.v); }
     static float hsum(F a) { return _mm512_reduce_add_ps(a.v); }
-    static F exp(F x) {
-        x = min(max(x, set1(kExpLo)), set1(kExpHi));
-        F fx = floor(fma(x, set1(kLog2e), set1(0.5f)));
-        x = x - fx * set1(kExpC1) - fx * set1(kExpC2);
-        F z = x * x;
-        F y = fma(set1(kExpP0), x, set1(kExpP1));
-        y = fma(y, x, set1(kExpP2));
-        y = fma(y, x, set1(kExpP3));
-        y = fma(y, x, set1(kExpP4));
-        y = fma(y, x, set1(kExpP5));
-        y = fma(y, z, x + set1(1.0f));
-        __m512i e = _mm512_slli_epi32(_mm512_add_epi32(_mm512_cvttps_epi32(fx.v), _mm512_set1_epi32(127)), 23);
-        return y * F(_mm512_castsi512_ps(e));
+    static F ldexp(F y, F n) {
+        return F(_mm512_castsi512_ps(_mm512_add_epi32(_mm512_castps_si512(y.v),
+                                                       _mm512_slli_epi32(_mm512_cvtps_epi32(n.v), 23))));
     }
-    static F exp2(F t) {
-        t = max(t, set1(-126.0f));  // callers keep t <= 1
-        F n = _mm512_roundscale_ps(t.v, _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC);
-        F f = t - n;
-        // Estrin's scheme: a shorter dependency chain than Horner's (this sits on the compositing loop's path).
-        F f2 = f * f;
-        F p = fma(f2 * f2, fma(set1(kExp2C5), f, set1(kExp2C4)),
-                  fma(f2, fma(set1(kExp2C3), f, set1(kExp2C2)), fma(set1(kExp2C1), f, set1(1.0f))));
-        __m512i e = _mm512_slli_epi32(_mm512_cvtps_epi32(n.v), 23);
-        return F(_mm512_castsi512_ps(_mm512_add_epi32(_mm512_castps_si512(p.v), e)));
+    static F frexp(F x, F& e) {
+        const __m512i bits = _mm512_castps_si512(x.v);
+        e = _mm512_cvtepi32_ps(_mm512_sub_epi32(_mm512_srli_epi32(bits, 23), _mm512_set1_epi32(126)));
+        return F(_mm512_castsi512_ps(_mm512_or_si512(_mm512_and_si512(bits, _mm512_set1_epi32(0x007fffff)),
+                                                      _mm512_set1_epi32(0x3f000000))));
     }
-    static F log(F x) {
-        __m512i bits = _mm512_castps_si512(x.v);
-        __m512i e = _mm512_sub_epi32(_mm512_srli_epi32(bits, 23), _mm512_set1_epi32(126));
-        F m(_mm512_castsi512_ps(_mm512_or_si512(_mm512_and_si512(bits, _mm512_set1_epi32(0x007fffff)),
-                                                 _mm512_set1_epi32(0x3f000000))));
-        F ef(_mm512_cvtepi32_ps(e));
-        M small = lt(m, set1(kSqrtHalf));
-        ef = select(small, ef - set1(1.0f), ef);
-        m = select(small, m + m, m) - set1(1.0f);
-        F z = m * m;
-        F y = set1(kLogP[0]);
-        for (int i = 1; i < 9; ++i) y = fma(y, m, set1(kLogP[i]));
-        y = y * m * z;
-        y = fma(ef, set1(kExpC2), y);
-        y = fma(set1(-0.5f), z, y);
-        return fma(ef, set1(kExpC1), m + y);
-    }
+    static F round(F x) { return _mm512_roundscale_ps(x.v, _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC); }
 };
 #endif
+
+// exp, 2^t and log over any wrapper: one polynomial implementation for every vector path; the scalar path uses
+// the C library.
+template <class V>
+inline typename V::F vexp(typename V::F x) {
+    using F = typename V::F;
+    x = V::min(V::max(x, V::set1(kExpLo)), V::set1(kExpHi));
+    const F fx = V::floor(V::fma(x, V::set1(kLog2e), V::set1(0.5f)));
+    x = x - fx * V::set1(kExpC1) - fx * V::set1(kExpC2);
+    F y = V::fma(V::set1(kExpP0), x, V::set1(kExpP1));
+    y = V::fma(y, x, V::set1(kExpP2));
+    y = V::fma(y, x, V::set1(kExpP3));
+    y = V::fma(y, x, V::set1(kExpP4));
+    y = V::fma(y, x, V::set1(kExpP5));
+    y = V::fma(y, x * x, x + V::set1(1.0f));
+    return V::ldexp(y, fx);
+}
+
+// 2^t for t <= 1 (clamped below at -126): t = n + f, |f| <= 0.5, 2^f by its Taylor series to degree 5
+// (< 3e-6 relative), evaluated by Estrin's scheme (a short dependency chain: it sits in the compositing loop).
+template <class V>
+inline typename V::F vexp2(typename V::F t) {
+    using F = typename V::F;
+    t = V::max(t, V::set1(-126.0f));
+    const F n = V::round(t);
+    const F f = t - n;
+    const F f2 = f * f;
+    const F p = V::fma(f2 * f2, V::fma(V::set1(kExp2C5), f, V::set1(kExp2C4)),
+                       V::fma(f2, V::fma(V::set1(kExp2C3), f, V::set1(kExp2C2)),
+                              V::fma(V::set1(kExp2C1), f, V::set1(1.0f))));
+    return V::ldexp(p, n);
+}
+
+// Natural log for finite x > 0.
+template <class V>
+inline typename V::F vlog(typename V::F x) {
+    using F = typename V::F;
+    F e;
+    F m = V::frexp(x, e);
+    const auto small = V::lt(m, V::set1(kSqrtHalf));
+    e = V::select(small, e - V::set1(1.0f), e);
+    m = V::select(small, m + m, m) - V::set1(1.0f);
+    const F z = m * m;
+    F y = V::set1(kLogP[0]);
+    for (int i = 1; i < 9; ++i) y = V::fma(y, m, V::set1(kLogP[i]));
+    y = y * m * z;
+    y = V::fma(e, V::set1(kExpC2), y);
+    y = V::fma(V::set1(-0.5f), z, y);
+    return V::fma(e, V::set1(kExpC1), m + y);
+}
+
+template <>
+inline float vexp<Scalar>(float x) { return std::exp(x); }
+template <>
+inline float vexp2<Scalar>(float t) { return std::exp2(t); }
+template <>
+inline float vlog<Scalar>(float x) { return std::log(x); }
 
 }  // namespace bs
