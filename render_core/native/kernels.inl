@@ -88,7 +88,12 @@ static void blend_t(const AvatarView& av, const float* psi, const float* pose_fe
             }
         }
         for (int b = 0; b < B; ++b)
-            std::memcpy(out + (size_t(b) * out_stride + (n - n0)) * DP, acc + b * DP, sizeof(float) * DP);
+        {
+            // Lane-interleaved blocks of W Gaussians ([block][d][lane]), what deform_project loads as vectors.
+            const int i = n - n0, block = i / W, lane = i % W;
+            float* o = out + size_t(b) * out_stride * DP + (size_t(block) * DP) * W + lane;
+            for (int d = 0; d < 11 + 3 * av.C; ++d) o[d * W] = acc[b * DP + d];
+        }
     }
 }
 
@@ -300,21 +305,24 @@ static inline void project(const F x[3], const Mat3& rw, const F s[3], F opacity
 static void deform_project(const AvatarView& av, const float* blended, const float* A, const Cam& cam, Splat* out,
                            int n0, int n1) {
     const int DP = av.Dp, J = av.J;
-    alignas(64) float buf[64 * kMaxLanes];
-    alignas(64) float wbuf[32 * kMaxLanes];
+    alignas(64) float wtail[32 * kMaxLanes];
     for (int g0 = n0; g0 < n1; g0 += W) {
         const int lanes = std::min(W, n1 - g0);
-        for (int l = 0; l < W; ++l) {  // transpose W rows (tail lanes repeat the last Gaussian)
-            const int n = g0 + std::min(l, lanes - 1);
-            const float* row = blended + size_t(n - n0) * DP;
-            for (int d = 0; d < 11 + 3 * av.C; ++d) buf[d * W + l] = row[d];
-            for (int j = 0; j < J; ++j) wbuf[j * W + l] = av.lbs[size_t(j) * av.n_total + n];
+        // The blend left this block lane-interleaved ([d][lane]); tail lanes past n1 hold stale values that are
+        // computed on but never written out.
+        const float* buf = blended + size_t((g0 - n0) / W) * DP * W;
+        const float* wbuf = av.lbs + g0;  // [J, n_total]: W consecutive Gaussians per joint
+        size_t wstride = av.n_total;
+        if (g0 + W > av.n_total) {  // the last block of the avatar: copy what exists
+            for (int j = 0; j < J; ++j)
+                for (int l = 0; l < W; ++l) wtail[j * W + l] = l < lanes ? av.lbs[size_t(j) * av.n_total + g0 + l] : 0.0f;
+            wbuf = wtail, wstride = W;
         }
         // T = I + sum_j w_j (A_j - I), 3x4.
         F t[12];
         for (int e = 0; e < 12; ++e) t[e] = V::set1((e == 0 || e == 5 || e == 10) ? 1.0f : 0.0f);
         for (int j = 0; j < J; ++j) {
-            const F w = V::load(wbuf + j * W);
+            const F w = V::load(wbuf + j * wstride);
             const float* a = A + j * 12;
             for (int e = 0; e < 12; ++e) {
                 const float id = (e == 0 || e == 5 || e == 10) ? 1.0f : 0.0f;
