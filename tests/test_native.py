@@ -887,3 +887,26 @@ def test_render_entry_point_native_matches_reference(broadcast, avatar, aa_avata
         assert float(ref.alpha.mean()) > 0.1
         assert_parity(out.rgb, out.alpha, out.depth, ref)
         assert torch.equal(default.rgb, out.rgb)
+
+
+def test_auto_picks_the_fastest_path_that_agrees_with_scalar(monkeypatch, caplog):
+    native.verified_fastest_path.cache_clear()
+    assert native.verified_fastest_path() == native.simd_paths()[-1]
+    if len(native.simd_paths()) == 1:
+        return
+    fastest = native.simd_paths()[-1]
+    real = native.NativeAvatar.render
+
+    def broken(self, *args, simd=None, **kwargs):  # the fastest path renders wrong colours
+        rgb, alpha, depth, timings = real(self, *args, simd=simd, **kwargs)
+        return (rgb + 0.1 if simd == fastest else rgb), alpha, depth, timings
+
+    monkeypatch.setattr(native.NativeAvatar, "render", broken)
+    native.verified_fastest_path.cache_clear()
+    try:
+        with caplog.at_level("WARNING"):
+            picked = native.verified_fastest_path()
+        assert picked != fastest and picked in native.simd_paths()
+        assert fastest in caplog.text and "disagrees" in caplog.text
+    finally:
+        native.verified_fastest_path.cache_clear()
