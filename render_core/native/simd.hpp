@@ -242,12 +242,12 @@ inline typename V::F vexp(typename V::F x) {
     return V::ldexp(y, fx);
 }
 
-// 2^t for t <= 1 (clamped below at -126): t = n + f, |f| <= 0.5, 2^f by its Taylor series to degree 5
+// 2^t for t <= 1 (clamped below at -64): t = n + f, |f| <= 0.5, 2^f by its Taylor series to degree 5
 // (< 3e-6 relative), evaluated by Estrin's scheme (a short dependency chain: it sits in the compositing loop).
 template <class V>
 inline typename V::F vexp2(typename V::F t) {
     using F = typename V::F;
-    t = V::max(t, V::set1(-126.0f));
+    t = V::max(t, V::set1(-64.0f));  // 2^-64 is still a normal float: denormals take slow microcode paths
     const F n = V::round(t);
     const F f = t - n;
     const F f2 = f * f;
