@@ -199,8 +199,8 @@ class NativeAvatar:
         n, k, j, m = avatar.num_gaussians, avatar.num_expressions, avatar.num_joints, avatar.num_mouth
         c = sh_coeff_count(avatar.sh_degree)
         dp = _ceil16(11 + 3 * c)
+        d = 11 + 3 * c  # values per row; base rows are padded to dp, delta rows are not (fewer bytes per frame)
         base = torch.cat([_rows(avatar.neutral, dp, torch.float32), _rows(avatar.mouth, dp, torch.float32)])
-        d = 11 + 3 * c
         deltas = _rows(avatar.deltas, d, store).transpose(0, 1)  # [N, K, D]
         stored = (deltas != 0).any(-1)  # [N, K]: pairs that change anything
         if bool(stored.all()):
@@ -227,9 +227,14 @@ class NativeAvatar:
             return t.contiguous().view(torch.int16).numpy().view(np.uint16) if t.dtype == torch.float16 else _np(t)
 
         self._arrays = dict(
-            base=_np(base), row_ptr=_np(row_ptr, torch.int32), col=col.to(torch.int32).numpy().astype(np.uint16),
+            base=_np(base),
+            row_ptr=_np(row_ptr, torch.int32),
+            col=col.to(torch.int32).numpy().astype(np.uint16),
             vals=bits(vals),
-            pc=bits(pc), eyelid=_np(eyelid), lbs=np.ascontiguousarray(_np(lbs).T), joints=_np(avatar.joint_positions),
+            pc=bits(pc),
+            eyelid=_np(eyelid),
+            lbs=np.ascontiguousarray(_np(lbs).T),  # [J, N + M]: consecutive Gaussians load as one vector
+            joints=_np(avatar.joint_positions),
             parents=np.asarray(avatar.joint_parents, dtype=np.int32),
         )
         self.handle = _native.NativeAvatar(**self._arrays, n_face=n, K=k, C=c)
