@@ -126,10 +126,6 @@ class Avatar:
         return self.mouth.count
 
     @property
-    def dtype(self) -> torch.dtype:
-        return self.neutral.means.dtype
-
-    @property
     def precision(self) -> str:
         """Storage of the blendshape data (deltas, pose correctives, eyelids): "fp16" or "fp32"."""
         return "fp16" if self.deltas.means.dtype == torch.float16 else "fp32"

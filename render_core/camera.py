@@ -6,7 +6,6 @@ face from +z; :func:`orbit` circles the head.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -155,6 +154,3 @@ def front_camera(width: int = 512, height: int = 512, distance: float = 0.6, foc
     """One camera in front of the face (on +z) looking at the origin."""
     return orbit(0.0, 0.0, width=width, height=height, distance=distance, focal=focal)
 
-
-def fov_to_focal(fov_deg: float, size: int) -> float:
-    return size / (2.0 * math.tan(math.radians(fov_deg) / 2.0))

@@ -69,7 +69,6 @@ struct Scalar {
     static F sqrt(F a) { return std::sqrt(a); }
     static F floor(F a) { return std::floor(a); }
     static F ceil(F a) { return std::ceil(a); }
-    static F abs(F a) { return std::fabs(a); }
     static M lt(F a, F b) { return a < b; }
     static M le(F a, F b) { return a <= b; }
     static M ge(F a, F b) { return a >= b; }
@@ -77,10 +76,7 @@ struct Scalar {
     static M mand(M a, M b) { return a && b; }
     static M mor(M a, M b) { return a || b; }
     static M mandnot(M a, M b) { return !a && b; }  // (not a) and b
-    static M mload(const uint32_t* p) { return *p != 0; }
-    static void mstore(uint32_t* p, M m) { *p = m ? 1u : 0u; }
     static bool any(M m) { return m; }
-    static int count(M m) { return m ? 1 : 0; }
     static unsigned bits(M m) { return m ? 1u : 0u; }
     static F select(M m, F a, F b) { return m ? a : b; }
     static float hsum(F a) { return a; }
@@ -118,7 +114,6 @@ struct Avx2 {
     static F sqrt(F a) { return _mm256_sqrt_ps(a.v); }
     static F floor(F a) { return _mm256_floor_ps(a.v); }
     static F ceil(F a) { return _mm256_ceil_ps(a.v); }
-    static F abs(F a) { return _mm256_andnot_ps(_mm256_set1_ps(-0.0f), a.v); }
     static M lt(F a, F b) { return {_mm256_cmp_ps(a.v, b.v, _CMP_LT_OQ)}; }
     static M le(F a, F b) { return {_mm256_cmp_ps(a.v, b.v, _CMP_LE_OQ)}; }
     static M ge(F a, F b) { return {_mm256_cmp_ps(a.v, b.v, _CMP_GE_OQ)}; }
@@ -126,16 +121,7 @@ struct Avx2 {
     static M mand(M a, M b) { return {_mm256_and_ps(a.v, b.v)}; }
     static M mor(M a, M b) { return {_mm256_or_ps(a.v, b.v)}; }
     static M mandnot(M a, M b) { return {_mm256_andnot_ps(a.v, b.v)}; }
-    static M mload(const uint32_t* p) {
-        return {_mm256_castsi256_ps(
-            _mm256_cmpgt_epi32(_mm256_loadu_si256(reinterpret_cast<const __m256i*>(p)), _mm256_setzero_si256()))};
-    }
-    static void mstore(uint32_t* p, M m) {
-        _mm256_storeu_si256(reinterpret_cast<__m256i*>(p),
-                            _mm256_and_si256(_mm256_castps_si256(m.v), _mm256_set1_epi32(1)));
-    }
     static bool any(M m) { return _mm256_movemask_ps(m.v) != 0; }
-    static int count(M m) { return __builtin_popcount(unsigned(_mm256_movemask_ps(m.v))); }
     static unsigned bits(M m) { return unsigned(_mm256_movemask_ps(m.v)); }
     static F select(M m, F a, F b) { return _mm256_blendv_ps(b.v, a.v, m.v); }
     static float hsum(F a) {
@@ -192,7 +178,6 @@ struct Avx512 {
     static F sqrt(F a) { return _mm512_sqrt_ps(a.v); }
     static F floor(F a) { return _mm512_roundscale_ps(a.v, _MM_FROUND_TO_NEG_INF | _MM_FROUND_NO_EXC); }
     static F ceil(F a) { return _mm512_roundscale_ps(a.v, _MM_FROUND_TO_POS_INF | _MM_FROUND_NO_EXC); }
-    static F abs(F a) { return _mm512_abs_ps(a.v); }
     static M lt(F a, F b) { return {_mm512_cmp_ps_mask(a.v, b.v, _CMP_LT_OQ)}; }
     static M le(F a, F b) { return {_mm512_cmp_ps_mask(a.v, b.v, _CMP_LE_OQ)}; }
     static M ge(F a, F b) { return {_mm512_cmp_ps_mask(a.v, b.v, _CMP_GE_OQ)}; }
@@ -200,14 +185,7 @@ struct Avx512 {
     static M mand(M a, M b) { return {__mmask16(a.k & b.k)}; }
     static M mor(M a, M b) { return {__mmask16(a.k | b.k)}; }
     static M mandnot(M a, M b) { return {__mmask16(~a.k & b.k)}; }
-    static M mload(const uint32_t* p) {
-        return {_mm512_cmpneq_epi32_mask(_mm512_loadu_si512(p), _mm512_setzero_si512())};
-    }
-    static void mstore(uint32_t* p, M m) {
-        _mm512_storeu_si512(p, _mm512_maskz_mov_epi32(m.k, _mm512_set1_epi32(1)));
-    }
     static bool any(M m) { return m.k != 0; }
-    static int count(M m) { return __builtin_popcount(unsigned(m.k)); }
     static unsigned bits(M m) { return unsigned(m.k); }
     static F select(M m, F a, F b) { return _mm512_mask_blend_ps(m.k, b.v, a.v); }
     static float hsum(F a) { return _mm512_reduce_add_ps(a.v); }
