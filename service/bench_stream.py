@@ -1,0 +1,134 @@
+"""`blendsplat bench stream`: a real gRPC client that drives N concurrent streams at a fixed pose rate.
+
+Each stream sends fresh random coefficients and joint rotations every 1/fps seconds, acknowledges every frame
+it receives, and measures pose-to-frame latency (from building the pose to receiving its encoded frame). The
+first ``warmup`` seconds are not counted.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from dataclasses import dataclass, field
+
+import grpc
+import numpy as np
+
+from blendsplat.v1 import render_pb2 as pb
+from blendsplat.v1 import render_pb2_grpc as pb_grpc
+
+from .params import CODEC_NAMES
+
+CODECS = {name: value for value, name in CODEC_NAMES.items() if value}
+
+
+@dataclass
+class _Stream:
+    latencies: list[float] = field(default_factory=list)
+    server_ms: list[float] = field(default_factory=list)
+    bytes: list[int] = field(default_factory=list)
+    frames: int = 0
+    errors: int = 0
+    dropped: int = 0
+    gaussians: int = 0
+    messages: list[str] = field(default_factory=list)
+
+
+def _pose(rng: np.random.Generator, k: int, joints: list[str], index: int) -> pb.FrameParams:
+    coeffs = rng.uniform(0.0, 1.0, k) * (rng.uniform(0, 1, k) < 0.3)  # a few active expressions, like speech
+    rotations = {name: pb.Rotation(values=rng.normal(0, 0.08, 3).tolist()) for name in joints if name != "root"}
+    return pb.FrameParams(index=index, client_time_us=time.time_ns() // 1000, coefficients=coeffs.tolist(),
+                          joints=rotations)
+
+
+async def _run_stream(stub: pb_grpc.RenderServiceStub, avatar: str, size: int, codec: str, fps: float,
+                      seconds: float, warmup: float, seed: int) -> _Stream:
+    result = _Stream()
+    outbox: asyncio.Queue[pb.StreamRequest | None] = asyncio.Queue()
+    sent_at: dict[int, float] = {}
+    header_seen = asyncio.Event()
+    header: dict = {}
+    t_start = time.perf_counter()
+    count_from = t_start + warmup
+
+    async def requests():
+        while (req := await outbox.get()) is not None:
+            yield req
+
+    async def tick() -> None:
+        await header_seen.wait()
+        rng = np.random.default_rng(seed)
+        period, index, t_next = 1.0 / fps, 0, time.perf_counter()
+        end = time.perf_counter() + warmup + seconds
+        while t_next < end:
+            await asyncio.sleep(max(0.0, t_next - time.perf_counter()))
+            index += 1
+            msg = _pose(rng, len(header["names"]), header["joints"], index)
+            sent_at[index] = time.perf_counter()
+            outbox.put_nowait(pb.StreamRequest(frame=msg))
+            t_next += period
+        await asyncio.sleep(0.5)  # let the last frames arrive before half-closing
+        outbox.put_nowait(None)
+
+    outbox.put_nowait(pb.StreamRequest(open=pb.SessionConfig(
+        avatar_id=avatar, width=size, height=size, codec=CODECS[codec], fps_hint=fps)))
+    ticker = asyncio.create_task(tick())
+    try:
+        async for reply in stub.RenderStream(requests()):
+            kind = reply.WhichOneof("msg")
+            now = time.perf_counter()
+            if kind == "header":
+                header.update(names=list(reply.header.expression_names), joints=list(reply.header.joint_names))
+                result.gaussians = reply.header.gaussians
+                header_seen.set()
+            elif kind == "frame":
+                f = reply.frame
+                outbox.put_nowait(pb.StreamRequest(ack=pb.Ack(index=f.index)))
+                if sent_at.get(f.index, 0.0) >= count_from:
+                    result.frames += 1
+                    result.latencies.append((now - sent_at[f.index]) * 1e3)
+                    result.server_ms.append(f.timings.total_ms)
+                    result.bytes.append(len(f.data))
+                sent_at.pop(f.index, None)
+            elif kind == "error":
+                result.errors += 1
+                result.messages.append(reply.error.message)
+            elif kind == "status":
+                result.dropped = reply.status.dropped
+                if reply.status.code != pb.OK:
+                    result.errors += 1
+                    result.messages.append(reply.status.message)
+    except grpc.aio.AioRpcError as e:
+        result.errors += 1
+        result.messages.append(f"{e.code().name}: {e.details()}")
+    finally:
+        ticker.cancel()
+    return result
+
+
+def _pct(values: list[float], q: float) -> float:
+    return round(float(np.percentile(values, q)), 2) if values else float("nan")
+
+
+async def bench_stream(target: str, avatar: str, streams: int = 1, seconds: float = 10.0, fps: float = 30.0,
+                       size: int = 512, codec: str = "jpeg", warmup: float = 1.0, seed: int = 0) -> dict:
+    async with grpc.aio.insecure_channel(target, options=[("grpc.max_receive_message_length", 64 << 20)]) as ch:
+        stub = pb_grpc.RenderServiceStub(ch)
+        results = await asyncio.gather(*(
+            _run_stream(stub, avatar, size, codec, fps, seconds, warmup, seed + i) for i in range(streams)))
+    latencies = [x for r in results for x in r.latencies]
+    server = [x for r in results for x in r.server_ms]
+    sizes = [x for r in results for x in r.bytes]
+    per_stream = [r.frames / seconds for r in results]
+    return {
+        "target": target, "avatar": avatar, "streams": streams, "gaussians": max(r.gaussians for r in results),
+        "size": size, "codec": codec, "fps_target": fps, "seconds": seconds, "warmup_seconds": warmup,
+        "fps_per_stream": round(float(np.mean(per_stream)), 2), "fps_per_stream_min": round(min(per_stream), 2),
+        "fps_aggregate": round(sum(per_stream), 2), "frames": len(latencies),
+        "latency_ms": {"p50": _pct(latencies, 50), "p95": _pct(latencies, 95), "p99": _pct(latencies, 99),
+                       "max": round(max(latencies), 2) if latencies else float("nan")},
+        "server_ms": {"p50": _pct(server, 50), "p99": _pct(server, 99)},
+        "bytes_per_frame": round(float(np.mean(sizes)), 1) if sizes else 0.0,
+        "dropped": sum(r.dropped for r in results), "errors": sum(r.errors for r in results),
+        "error_messages": sorted({m for r in results for m in r.messages})[:10],
+    }

@@ -1,0 +1,132 @@
+"""Loaded avatars, shared by every session of this process: LRU under a memory budget.
+
+An entry is a bundle read from the store and packed for the renderer. Sessions pin the entries they use; only
+unpinned entries are evicted. Concurrent requests for one avatar share a single load.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from collections import OrderedDict
+from dataclasses import dataclass, field
+
+from render_core.avatar import Avatar
+from render_core.bundle import read_bundle, read_manifest
+from render_core.errors import BundleError
+from render_core.renderer import AvatarRenderer
+
+from .errors import FailedPrecondition, ResourceExhausted
+from .metrics import Metrics
+from .store import BundleStore
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(eq=False)
+class Loaded:
+    id: str
+    avatar: Avatar
+    renderer: AvatarRenderer
+    digest: str
+    file_bytes: int
+    memory_bytes: int
+    pins: int = 0
+    loaded_at: float = field(default_factory=time.time)
+
+
+def _memory_bytes(renderer: AvatarRenderer, file_bytes: int) -> int:
+    packed = getattr(renderer.native, "_arrays", None) or {}
+    return file_bytes + sum(a.nbytes for a in packed.values())
+
+
+class AvatarCache:
+    def __init__(self, store: BundleStore, budget: int, metrics: Metrics, backend: str | None = None,
+                 threads: int = 0):
+        self.store, self.budget, self.metrics = store, budget, metrics
+        self.backend, self.threads = backend, threads
+        self._entries: OrderedDict[str, Loaded] = OrderedDict()  # least recently used first
+        self._loading: dict[str, asyncio.Future[Loaded]] = {}
+
+    @property
+    def used(self) -> int:
+        return sum(e.memory_bytes for e in self._entries.values())
+
+    def get(self, avatar_id: str) -> Loaded | None:
+        return self._entries.get(avatar_id)
+
+    def loaded_ids(self) -> list[str]:
+        return list(self._entries)
+
+    async def load(self, avatar_id: str) -> Loaded:
+        """The avatar, loading it from the store if needed (NotFound, InvalidArgument for a broken bundle)."""
+        entry = self._entries.get(avatar_id)
+        if entry is not None:
+            self.metrics.cache_hits.inc()
+            self._entries.move_to_end(avatar_id)
+            return entry
+        if avatar_id in self._loading:  # someone else is loading it: share that load
+            self.metrics.cache_hits.inc()
+            return await asyncio.shield(self._loading[avatar_id])
+        self.metrics.cache_misses.inc()
+        path = self.store.existing(avatar_id)
+        future: asyncio.Future[Loaded] = asyncio.get_running_loop().create_future()
+        self._loading[avatar_id] = future
+        try:
+            entry = await asyncio.to_thread(self._read, avatar_id, path)
+            self._make_room(entry.memory_bytes, avatar_id)
+            self._entries[avatar_id] = entry
+            self._update_gauges()
+            future.set_result(entry)
+            log.info("loaded avatar %s (%d Gaussians, %.0f MB)", avatar_id, entry.avatar.num_gaussians
+                     + entry.avatar.num_mouth, entry.memory_bytes / 1e6)
+            return entry
+        except BaseException as e:
+            future.set_exception(e)
+            future.exception()  # retrieved: waiters re-raise it, nobody else has to
+            raise
+        finally:
+            del self._loading[avatar_id]
+
+    async def acquire(self, avatar_id: str) -> Loaded:
+        entry = await self.load(avatar_id)
+        entry.pins += 1
+        return entry
+
+    def release(self, entry: Loaded) -> None:
+        entry.pins -= 1
+
+    def unload(self, avatar_id: str) -> bool:
+        """Drop an avatar from memory (sessions using it keep their reference until they end)."""
+        entry = self._entries.pop(avatar_id, None)
+        self._update_gauges()
+        return entry is not None
+
+    def _read(self, avatar_id: str, path) -> Loaded:
+        try:
+            avatar = read_bundle(path)
+        except BundleError as e:
+            raise FailedPrecondition(f"avatar {avatar_id!r} has a broken bundle in the store: {e}",
+                                     field="avatar_id") from None
+        renderer = AvatarRenderer(avatar, self.backend, threads=self.threads)
+        file_bytes = path.stat().st_size
+        return Loaded(avatar_id, avatar, renderer, read_manifest(path).get("digest", ""), file_bytes,
+                      _memory_bytes(renderer, file_bytes))
+
+    def _make_room(self, need: int, for_id: str) -> None:
+        if need > self.budget:
+            raise ResourceExhausted(f"avatar {for_id!r} needs {need / 1e6:.0f} MB, more than the cache budget "
+                                    f"of {self.budget / 1e6:.0f} MB", field="avatar_id")
+        for victim in [k for k, e in self._entries.items() if e.pins == 0]:
+            if self.used + need <= self.budget:
+                break
+            log.info("evicting avatar %s (least recently used)", victim)
+            del self._entries[victim]
+        if self.used + need > self.budget:
+            raise ResourceExhausted(f"no room for avatar {for_id!r}: {self.used / 1e6:.0f} MB of the "
+                                    f"{self.budget / 1e6:.0f} MB budget are held by avatars in use", field="avatar_id")
+
+    def _update_gauges(self) -> None:
+        self.metrics.cache_bytes.set(self.used)
+        self.metrics.cache_avatars.set(len(self._entries))

@@ -1,0 +1,423 @@
+"""The render engine: one per process, shared by the gRPC and WebSocket transports.
+
+- Sessions: a stream's state (avatar, output, encoder, defaults) and its flow control. The client's newest pose
+  wins: a pose that arrives while an older one waits replaces it (the older one is counted as dropped). At most
+  ``max_in_flight`` frames are rendered-or-sent and not yet acknowledged; a reader that stops acking stops the
+  rendering for its session, so the server holds at most one pending pose and ``max_in_flight`` frames for it.
+- One scheduler task hands ready sessions to a single render thread (the native renderer uses every core for one
+  call); sessions of the same avatar and output size that are ready together are rendered as one batched call.
+- Draining (SIGTERM): new streams are refused, poses already received are rendered and sent, then every stream
+  ends with an UNAVAILABLE status.
+
+Transports only frame messages: they pass ``StreamRequest`` messages to :meth:`Session.handle` and forward what
+:meth:`Session.responses` yields.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+import uuid
+from collections import deque
+from collections.abc import AsyncIterator
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from blendsplat.v1 import render_pb2 as pb
+from render_core.camera import Cameras
+from render_core.codecs import Encoder, make_encoder
+from render_core.deform import Frame
+
+from . import params
+from .cache import AvatarCache, Loaded
+from .errors import InvalidArgument, ResourceExhausted, ServiceError, Unavailable, to_status
+from .metrics import Metrics
+from .settings import Settings
+from .store import BundleStore, check_id
+
+log = logging.getLogger(__name__)
+
+MAX_QUEUED_ERRORS = 32  # error replies waiting for a reader that does not read; more are counted, not queued
+
+
+@dataclass(eq=False)
+class Job:
+    """One pose to render: validated render_core inputs plus what the reply echoes."""
+
+    frame: Frame  # batch of 1
+    camera: Cameras  # 1 camera at the output size
+    background: torch.Tensor  # [3]
+    index: int
+    client_time_us: int
+    received: float = field(default_factory=time.perf_counter)
+    started: float = 0.0
+
+
+@dataclass
+class Rendered:
+    data: bytes
+    timings: pb.StageTimings
+
+
+class Session:
+    """One stream. Created by :meth:`Engine.open`; every method runs on the event loop."""
+
+    def __init__(self, engine: Engine, entry: Loaded, config: pb.SessionConfig, transport: str):
+        s = engine.settings
+        self.engine, self.entry, self.transport = engine, entry, transport
+        self.id = uuid.uuid4().hex
+        avatar = entry.avatar
+        self.out = params.output(config.width, config.height, config.codec, config.quality, s.max_size)
+        if config.max_in_flight > 16:
+            raise InvalidArgument(f"at most 16, got {config.max_in_flight}", field="max_in_flight")
+        self.max_in_flight = config.max_in_flight or s.max_in_flight
+        self.order = params.expression_order(avatar, list(config.expression_names))
+        self.camera = params.camera(avatar, config.camera if config.HasField("camera") else None, self.out)
+        self.background = params.background(config.background if config.HasField("background") else None)
+        self.encoder: Encoder = make_encoder(self.out.codec, self.out.width, self.out.height, config.quality,
+                                             config.fps_hint or 30.0)
+        self.pending: Job | None = None
+        self.unacked: deque[int] = deque()  # indices rendering or sent, not yet acknowledged
+        self.rendering = 0
+        self.sent = self.dropped = 0
+        self.input_done = False
+        self.closed = False
+        self._replies: asyncio.Queue[pb.StreamResponse | None] = asyncio.Queue()
+        self._queued_errors = 0
+
+    # ------------------------------------------------------------------------------------------ from the client
+    def header(self) -> pb.StreamResponse:
+        a = self.entry.avatar
+        return pb.StreamResponse(header=pb.StreamHeader(
+            session_id=self.id, avatar_id=self.entry.id, expression_names=a.expression_names,
+            joint_names=a.joint_names, width=self.out.width, height=self.out.height, codec=self.out.codec_enum,
+            max_in_flight=self.max_in_flight, gaussians=a.num_gaussians + a.num_mouth))
+
+    def handle(self, request: pb.StreamRequest) -> None:
+        """Apply one client message. Bad messages get an ``error`` reply; the stream goes on."""
+        if self.closed:
+            return
+        kind = request.WhichOneof("msg")
+        try:
+            if kind == "frame":
+                self._submit(request.frame)
+            elif kind == "ack":
+                while self.unacked and self.unacked[0] <= request.ack.index:
+                    self.unacked.popleft()
+                self.engine.wake()
+            elif kind == "open":
+                raise InvalidArgument("the session is already open; send frame or ack messages", field="open")
+            else:
+                raise InvalidArgument("empty message: set one of open, frame, ack", field="msg")
+        except Exception as e:  # noqa: BLE001 - every failure becomes a status reply
+            index = request.frame.index if kind == "frame" else 0
+            self.error(to_status(e, index))
+
+    def _submit(self, msg: pb.FrameParams) -> None:
+        if self.engine.draining:
+            raise Unavailable("the server is shutting down; no new frames are taken")
+        avatar = self.entry.avatar
+        job = Job(
+            frame=params.frame(avatar, msg, self.order),
+            camera=params.camera(avatar, msg.camera if msg.HasField("camera") else None, self.out, self.camera),
+            background=params.background(msg.background if msg.HasField("background") else None, self.background),
+            index=msg.index, client_time_us=msg.client_time_us,
+        )
+        if self.pending is not None:
+            self._drop()
+        self.pending = job
+        self.engine.wake()
+
+    def end_input(self) -> None:
+        """The client sent its last message: render what is pending (if acks allow), then end the stream."""
+        self.input_done = True
+        self._maybe_finish()
+
+    # ---------------------------------------------------------------------------------------- for the engine
+    @property
+    def ready(self) -> bool:
+        return (not self.closed and self.pending is not None and len(self.unacked) < self.max_in_flight)
+
+    def take(self) -> Job:
+        job, self.pending = self.pending, None
+        self.unacked.append(job.index)
+        self.rendering += 1
+        return job
+
+    def deliver(self, job: Job, result: Rendered | BaseException) -> None:
+        self.rendering -= 1
+        if self.closed:
+            return
+        if isinstance(result, BaseException):
+            self.unacked.remove(job.index)
+            log.exception("render failed for session %s", self.id, exc_info=result)
+            self.error(to_status(result, job.index))
+        else:
+            self.sent += 1
+            m = self.engine.metrics
+            m.frames.labels(self.out.codec).inc()
+            m.bytes_out.labels(self.out.codec).inc(len(result.data))
+            self._replies.put_nowait(pb.StreamResponse(frame=pb.RenderedFrame(
+                index=job.index, client_time_us=job.client_time_us, codec=self.out.codec_enum,
+                width=self.out.width, height=self.out.height, data=result.data, timings=result.timings,
+                dropped=self.dropped)))
+        self._maybe_finish()
+
+    def error(self, status: pb.Status) -> None:
+        self.engine.metrics.errors.labels(pb.Code.Name(status.code)).inc()
+        if self._queued_errors >= MAX_QUEUED_ERRORS:
+            return  # a client that sends bad messages and does not read: counted above, not queued
+        self._queued_errors += 1
+        self._replies.put_nowait(pb.StreamResponse(error=status))
+
+    def finish(self, code: int = pb.OK, message: str = "") -> None:
+        """End the stream with a final status (once)."""
+        if self.closed:
+            return
+        if self.pending is not None:
+            self._drop()
+        self.closed = True
+        self._replies.put_nowait(pb.StreamResponse(status=pb.Status(
+            code=code, message=message, frames_sent=self.sent, dropped=self.dropped)))
+        self._replies.put_nowait(None)
+        self.engine.detach(self)
+
+    async def responses(self) -> AsyncIterator[pb.StreamResponse]:
+        """Everything to send to the client, ending with the final status."""
+        while (reply := await self._replies.get()) is not None:
+            if reply.HasField("error"):
+                self._queued_errors -= 1
+            yield reply
+
+    def _drop(self) -> None:
+        self.pending = None
+        self.dropped += 1
+        self.engine.metrics.dropped.inc()
+
+    def _maybe_finish(self) -> None:
+        if self.input_done and not self.rendering and not self.ready:
+            self.finish()
+
+
+class Engine:
+    def __init__(self, settings: Settings, metrics: Metrics | None = None):
+        self.settings = settings
+        self.metrics = metrics or Metrics()
+        self.store = BundleStore(settings.bundle_dir)
+        self.cache = AvatarCache(self.store, settings.cache_bytes, self.metrics, settings.backend,
+                                 settings.render_threads)
+        self.sessions: dict[str, Session] = {}
+        self.draining = False
+        self.warmed_up = False
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="render")
+        self._wake = asyncio.Event()
+        self._busy = False
+        self._scheduler: asyncio.Task | None = None
+
+    # --------------------------------------------------------------------------------------------- lifecycle
+    async def start(self) -> None:
+        self.store.ensure()
+        self._scheduler = asyncio.create_task(self._schedule(), name="render-scheduler")
+
+    @property
+    def ready(self) -> bool:
+        return self.warmed_up and not self.draining and self.store.reachable()
+
+    async def warm_up(self, avatar_id: str | None) -> None:
+        """Render one frame (of ``avatar_id``, or of a tiny built-in avatar) so the first client waits for none
+        of the one-time costs; readiness waits for it."""
+        size = self.settings.warmup_size
+        if avatar_id is not None:
+            entry = await self.cache.load(avatar_id)
+        else:
+            from render_core.renderer import AvatarRenderer
+            from render_core.synth import synth_avatar
+
+            avatar = synth_avatar(gaussians=256, blendshapes=4)
+            entry = Loaded("warm-up", avatar, AvatarRenderer(avatar, self.settings.backend), "", 0, 0)
+        out = params.output(size, size, pb.CODEC_JPEG, 0, max(size, self.settings.max_size))
+        job = Job(Frame.neutral(entry.avatar), params.camera(entry.avatar, None, out), torch.zeros(3), 0, 0)
+        encoder = make_encoder(out.codec, out.width, out.height)
+        await asyncio.get_running_loop().run_in_executor(self._pool, _render, entry, [job], [encoder])
+        self.warmed_up = True
+        self.metrics.ready.set(1)
+
+    async def drain(self, timeout: float) -> None:
+        """Refuse new streams and frames, send the frames already received, then end every stream."""
+        self.draining = True
+        self.metrics.ready.set(0)
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline and any(s.ready or s.rendering for s in self.sessions.values()):
+            await asyncio.sleep(0.01)
+        for s in list(self.sessions.values()):
+            s.finish(pb.UNAVAILABLE, "the server is shutting down; reconnect to another replica")
+
+    async def close(self) -> None:
+        if self._scheduler is not None:
+            self._scheduler.cancel()
+        self._pool.shutdown(wait=True, cancel_futures=True)
+
+    # --------------------------------------------------------------------------------------------- sessions
+    async def open(self, config: pb.SessionConfig, transport: str) -> Session:
+        if self.draining:
+            raise Unavailable("the server is shutting down; connect to another replica")
+        if len(self.sessions) >= self.settings.max_sessions:
+            raise ResourceExhausted(f"this replica serves at most {self.settings.max_sessions} streams")
+        entry = await self.cache.acquire(check_id(config.avatar_id))
+        try:
+            session = Session(self, entry, config, transport)
+        except BaseException:
+            self.cache.release(entry)
+            raise
+        if len(self.sessions) >= self.settings.max_sessions:  # others opened while the avatar loaded
+            self.cache.release(entry)
+            raise ResourceExhausted(f"this replica serves at most {self.settings.max_sessions} streams")
+        self.sessions[session.id] = session
+        self.metrics.sessions.labels(transport).inc()
+        self.metrics.sessions_total.labels(transport).inc()
+        return session
+
+    def detach(self, session: Session) -> None:
+        """Forget a finished session (its last frames may still be on their way out)."""
+        if self.sessions.pop(session.id, None) is None:
+            return
+        self.cache.release(session.entry)
+        self.metrics.sessions.labels(session.transport).dec()
+        self._pool.submit(session.encoder.close)  # after any encode of it still running
+
+    def close_session(self, session: Session) -> None:
+        """The client went away: drop what is pending and free the session."""
+        session.finish(pb.CANCELLED, "the client went away")
+
+    # ------------------------------------------------------------------------------------------ single frames
+    async def render_once(self, request: pb.RenderRequest) -> pb.RenderedFrame:
+        if self.draining:
+            raise Unavailable("the server is shutting down; connect to another replica")
+        entry = await self.cache.acquire(check_id(request.avatar_id))
+        try:
+            avatar, s = entry.avatar, self.settings
+            out = params.output(request.width, request.height, request.codec, request.quality, s.max_size)
+            msg = request.frame
+            job = Job(params.frame(avatar, msg, params.expression_order(avatar, list(request.expression_names))),
+                      params.camera(avatar, msg.camera if msg.HasField("camera") else None, out),
+                      params.background(msg.background if msg.HasField("background") else None),
+                      msg.index, msg.client_time_us)
+            encoder = make_encoder(out.codec, out.width, out.height, request.quality)
+            try:
+                (result,) = await asyncio.get_running_loop().run_in_executor(self._pool, _render, entry, [job],
+                                                                             [encoder])
+            finally:
+                encoder.close()
+        finally:
+            self.cache.release(entry)
+        if isinstance(result, BaseException):
+            raise result
+        self._observe([job], [result], out.codec)
+        return pb.RenderedFrame(index=job.index, client_time_us=job.client_time_us, codec=out.codec_enum,
+                                width=out.width, height=out.height, data=result.data, timings=result.timings)
+
+    # -------------------------------------------------------------------------------------------- scheduling
+    def wake(self) -> None:
+        self._wake.set()
+
+    def _next_batch(self) -> list[Session]:
+        ready = [s for s in self.sessions.values() if s.ready]
+        if not ready:
+            return []
+        ready.sort(key=lambda s: s.pending.received)
+        first = ready[0]
+        same = [s for s in ready if s.entry is first.entry and (s.out.width, s.out.height) == (
+            first.out.width, first.out.height)]
+        return same[: self.settings.max_batch]
+
+    async def _schedule(self) -> None:
+        loop = asyncio.get_running_loop()
+        while True:
+            await self._wake.wait()
+            self._wake.clear()
+            while batch := self._next_batch():
+                jobs = [s.take() for s in batch]
+                try:
+                    results = await loop.run_in_executor(self._pool, _render, batch[0].entry, jobs,
+                                                         [s.encoder for s in batch])
+                except Exception as e:  # noqa: BLE001 - the batch failed as a whole
+                    results = [e] * len(jobs)
+                self._observe(jobs, results, batch[0].out.codec)
+                for session, job, result in zip(batch, jobs, results, strict=True):
+                    session.deliver(job, result)
+
+    def _observe(self, jobs: list[Job], results: list, codec: str) -> None:
+        m = self.metrics
+        ok = [r for r in results if isinstance(r, Rendered)]
+        if ok:
+            m.batch.observe(len(jobs))
+        for r in ok:
+            t = r.timings
+            for stage in ("queue", "blend", "lbs", "raster", "encode", "total"):
+                m.stage.labels(stage).observe(getattr(t, f"{stage}_ms") / 1e3)
+
+    def avatar_info(self, avatar_id: str) -> pb.AvatarInfo:
+        entry = self.cache.get(avatar_id)
+        path = self.store.existing(avatar_id)
+        if entry is not None:
+            a = entry.avatar
+            return pb.AvatarInfo(
+                id=avatar_id, loaded=True, gaussians=a.num_gaussians + a.num_mouth, mouth_gaussians=a.num_mouth,
+                expression_names=a.expression_names, joint_names=a.joint_names, sh_degree=a.sh_degree,
+                precision=a.precision, face_model=a.face_model, file_bytes=entry.file_bytes,
+                memory_bytes=entry.memory_bytes, digest=entry.digest)
+        m = self.store.manifest(avatar_id)
+        counts = m.get("counts", {})
+        return pb.AvatarInfo(
+            id=avatar_id, loaded=False, gaussians=counts.get("gaussians", 0) + counts.get("mouth", 0),
+            mouth_gaussians=counts.get("mouth", 0), expression_names=m.get("expression_names", []),
+            joint_names=m.get("joint_names", []), sh_degree=m.get("sh_degree", 0),
+            precision=m.get("precision", ""), face_model=str(m.get("face_model", "")),
+            file_bytes=path.stat().st_size, digest=m.get("digest", ""))
+
+    def list_avatars(self) -> list[pb.AvatarInfo]:
+        out = []
+        for avatar_id in self.store.ids():
+            try:
+                out.append(self.avatar_info(avatar_id))
+            except (ServiceError, Exception) as e:  # noqa: BLE001 - one broken file must not hide the others
+                log.warning("avatar %s unreadable: %s", avatar_id, e)
+        return out
+
+
+def _rgba(rgb: torch.Tensor, alpha: torch.Tensor) -> np.ndarray:
+    """[B, H, W, 3] and [B, H, W] floats in [0, 1] -> [B, H, W, 4] uint8 (rounded)."""
+    out = torch.empty(*rgb.shape[:-1], 4, dtype=torch.uint8)
+    out[..., :3] = rgb.clamp(0, 1).mul(255).add_(0.5).to(torch.uint8)
+    out[..., 3] = alpha.clamp(0, 1).mul(255).add_(0.5).to(torch.uint8)
+    return out.numpy()
+
+
+def _render(entry: Loaded, jobs: list[Job], encoders: list[Encoder]) -> list[Rendered | BaseException]:
+    """Render B jobs of one avatar in one call and encode each (runs on the render thread)."""
+    start = time.perf_counter()
+    for job in jobs:
+        job.started = start
+    frames = Frame.stack([j.frame for j in jobs])
+    cameras = Cameras.cat([j.camera for j in jobs])
+    out = entry.renderer.render(frames, cameras, torch.stack([j.background for j in jobs]))
+    images = _rgba(out.rgb, out.alpha)
+    t = out.timings
+    results: list[Rendered | BaseException] = []
+    for job, encoder, image in zip(jobs, encoders, images, strict=True):
+        t0 = time.perf_counter()
+        try:
+            data = encoder.encode(image)
+        except Exception as e:  # noqa: BLE001 - reported to that session only
+            results.append(e)
+            continue
+        t1 = time.perf_counter()
+        results.append(Rendered(data, pb.StageTimings(
+            queue_ms=(job.started - job.received) * 1e3, blend_ms=t.get("blend", 0.0), lbs_ms=t.get("lbs", 0.0),
+            raster_ms=t.get("raster", 0.0), encode_ms=(t1 - t0) * 1e3, total_ms=(t1 - job.received) * 1e3,
+            batch=len(jobs))))
+    return results

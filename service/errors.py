@@ -1,0 +1,62 @@
+"""Service errors and the one place that maps every error to a gRPC status code and an HTTP status."""
+
+from __future__ import annotations
+
+import grpc
+
+from blendsplat.v1 import render_pb2 as pb
+from render_core.errors import BlendsplatError
+
+
+class ServiceError(Exception):
+    """An error a client caused or must handle; ``code`` is the wire status (a ``blendsplat.v1.Code`` value)."""
+
+    code: int = pb.INTERNAL
+
+    def __init__(self, message: str, *, field: str | None = None):
+        self.field = field
+        super().__init__(f"{field}: {message}" if field else message)
+
+
+class InvalidArgument(ServiceError):
+    code = pb.INVALID_ARGUMENT
+
+
+class NotFound(ServiceError):
+    code = pb.NOT_FOUND
+
+
+class ResourceExhausted(ServiceError):
+    code = pb.RESOURCE_EXHAUSTED
+
+
+class FailedPrecondition(ServiceError):
+    code = pb.FAILED_PRECONDITION
+
+
+class Unavailable(ServiceError):
+    code = pb.UNAVAILABLE
+
+
+_HTTP = {
+    pb.OK: 200, pb.CANCELLED: 499, pb.INVALID_ARGUMENT: 422, pb.NOT_FOUND: 404, pb.RESOURCE_EXHAUSTED: 429,
+    pb.FAILED_PRECONDITION: 409, pb.INTERNAL: 500, pb.UNAVAILABLE: 503,
+}
+
+
+def to_status(exc: BaseException, frame_index: int = 0) -> pb.Status:
+    """Any exception as a wire status: typed errors keep their code and field; others are INTERNAL."""
+    if isinstance(exc, ServiceError):
+        return pb.Status(code=exc.code, message=str(exc), field=exc.field or "", frame_index=frame_index)
+    if isinstance(exc, BlendsplatError):  # bad frame parameters, shapes or bundles: the client's input
+        return pb.Status(code=pb.INVALID_ARGUMENT, message=str(exc), field=exc.field or "", frame_index=frame_index)
+    return pb.Status(code=pb.INTERNAL, message=f"internal error ({type(exc).__name__})", frame_index=frame_index)
+
+
+def grpc_code(code: int) -> grpc.StatusCode:
+    name = pb.Code.Name(code)
+    return getattr(grpc.StatusCode, name)
+
+
+def http_status(code: int) -> int:
+    return _HTTP.get(code, 500)
