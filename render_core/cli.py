@@ -100,6 +100,19 @@ def cmd_bench_render(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_bench_codecs(args: argparse.Namespace) -> int:
+    from .bench import bench_codecs
+
+    report = bench_codecs(size=args.size, frames=args.frames, gaussians=args.gaussians, seed=args.seed)
+    if args.json:
+        _emit(report)
+    else:
+        for codec, r in report["codecs"].items():
+            print(f"{codec}: encode {r['encode_ms']['median']} ms (p95 {r['encode_ms']['p95']} ms), "
+                  f"{r['bytes_per_frame']:.0f} bytes/frame, {r['mbit_s_at_30fps']} Mbit/s at 30 fps")
+    return 0
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
     from .demo import run_demo
 
@@ -167,6 +180,13 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--bundle", type=Path, default=None, help="benchmark this bundle instead of a synthetic one")
     b.add_argument("--json", action="store_true")
     b.set_defaults(fn=cmd_bench_render)
+    b = bsub.add_parser("codecs", help="encode time and size of rendered frames per streaming codec")
+    b.add_argument("--size", type=int, default=512)
+    b.add_argument("--frames", type=int, default=30, help="rendered frames of a smooth 30 fps sequence")
+    b.add_argument("--gaussians", type=int, default=20_000)
+    b.add_argument("--seed", type=int, default=0)
+    b.add_argument("--json", action="store_true")
+    b.set_defaults(fn=cmd_bench_codecs)
 
     d = sub.add_parser("demo", help="render a demo animation of a synthetic avatar")
     d.add_argument("--out", type=Path, default=Path("out/demo"))
