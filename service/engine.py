@@ -118,7 +118,7 @@ class Session:
             self.error(to_status(e, index))
 
     def _submit(self, msg: pb.FrameParams) -> None:
-        if self.engine.draining:
+        if self.engine.frames_closed:
             raise Unavailable("the server is shutting down; no new frames are taken")
         avatar = self.entry.avatar
         job = Job(
@@ -211,7 +211,8 @@ class Engine:
         self.cache = AvatarCache(self.store, settings.cache_bytes, self.metrics, settings.backend,
                                  settings.render_threads)
         self.sessions: dict[str, Session] = {}
-        self.draining = False
+        self.draining = False  # not ready; new streams are refused
+        self.frames_closed = False  # open streams take no new frames either
         self.warmed_up = False
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="render")
         self._wake = asyncio.Event()
@@ -246,10 +247,16 @@ class Engine:
         self.warmed_up = True
         self.metrics.ready.set(1)
 
-    async def drain(self, timeout: float) -> None:
-        """Refuse new streams and frames, send the frames already received, then end every stream."""
+    def begin_drain(self) -> None:
+        """Not ready, and no new streams; the streams already open go on until :meth:`drain`."""
         self.draining = True
         self.metrics.ready.set(0)
+
+    async def drain(self, timeout: float) -> None:
+        """Take no more frames, send the frames already received (up to ``timeout``), then end every stream
+        with UNAVAILABLE."""
+        self.begin_drain()
+        self.frames_closed = True
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline and any(s.ready or s.rendering for s in self.sessions.values()):
             await asyncio.sleep(0.01)

@@ -34,7 +34,7 @@ _WS_CLOSE = {pb.OK: 1000, pb.UNAVAILABLE: 1012, pb.RESOURCE_EXHAUSTED: 1013, pb.
 
 
 def as_json(message) -> dict[str, Any]:
-    return json_format.MessageToDict(message)
+    return json_format.MessageToDict(message, always_print_fields_with_no_presence=True)
 
 
 def _error_response(exc: BaseException) -> JSONResponse:

@@ -2,7 +2,8 @@
 
 Start-up: settings are validated, the bundle store is created (with a demo avatar when it is empty), both servers
 listen, then one warm-up frame is rendered; only then do /readyz and gRPC health report ready.
-SIGTERM/SIGINT: not ready at once, streams get no new frames, frames already received are sent, every stream
+SIGTERM/SIGINT: not ready at once and new streams are refused; after ``shutdown_delay_seconds`` open streams get
+no new frames, frames already received are sent, every stream
 ends with an UNAVAILABLE status, then both servers stop - all within ``drain_seconds``.
 """
 
@@ -93,9 +94,14 @@ class Service:
         if self._stopping:
             return await self.stopped.wait()
         self._stopping = True
-        log.info("draining (up to %.1f s)", self.settings.drain_seconds)
+        s = self.settings
+        self.engine.begin_drain()
         if self.grpc:
             await self.grpc.set_serving(False)
+        if s.shutdown_delay_seconds:
+            log.info("not ready; open streams go on for %.1f s", s.shutdown_delay_seconds)
+            await asyncio.sleep(s.shutdown_delay_seconds)
+        log.info("draining (up to %.1f s)", s.drain_seconds)
         await self.engine.drain(self.settings.drain_seconds)
         await asyncio.sleep(0.05)  # let the final statuses go out
         if self.grpc:

@@ -29,6 +29,9 @@ class Settings(BaseSettings):
     max_batch: int = Field(8, ge=1, le=64, description="frames of one avatar rendered in one call")
     max_message_bytes: int = Field(1 << 20, ge=1024, description="largest request message (gRPC, WebSocket)")
     max_upload_bytes: int = Field(2 << 30, ge=1024, description="largest bundle upload")
+    shutdown_delay_seconds: float = Field(
+        0.0, ge=0, description="SIGTERM: keep serving open streams (not ready, no new ones) this long before "
+                               "draining, so load balancers stop routing here first")
     drain_seconds: float = Field(10.0, ge=0, description="SIGTERM: time to finish frames in flight before exit")
 
     demo_avatar: bool = Field(True, description="put a demo avatar in an empty bundle store on start")

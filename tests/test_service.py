@@ -1,0 +1,524 @@
+"""The streaming service against its real servers on loopback (gRPC and HTTP/WebSocket in one process)."""
+
+from __future__ import annotations
+
+import json
+import queue
+import time
+
+import grpc
+import httpx
+import numpy as np
+import pytest
+import torch
+from grpc_health.v1 import health_pb2, health_pb2_grpc
+from websockets.sync.client import connect
+
+from blendsplat.v1 import render_pb2 as pb
+from blendsplat.v1 import render_pb2_grpc as pb_grpc
+from render_core.bundle import read_bundle, write_bundle
+from render_core.codecs import H264Decoder, decode_image
+from render_core.deform import Frame
+from render_core.drive import default_camera
+from render_core.renderer import AvatarRenderer
+from render_core.synth import synth_avatar
+
+SIZE = 48
+
+
+@pytest.fixture(scope="module")
+def stub(live_server):
+    with grpc.insecure_channel(live_server.grpc_target) as channel:
+        yield pb_grpc.RenderServiceStub(channel)
+
+
+@pytest.fixture(scope="module")
+def reference(live_server):
+    """render_core's own renderer on the store's demo bundle: what every stream must reproduce."""
+    avatar = read_bundle(live_server.engine.store.path(live_server.avatar_id))
+    return avatar, AvatarRenderer(avatar)
+
+
+def expected_image(reference, coefficients, joints, size=SIZE) -> np.ndarray:
+    """[H, W, 4] uint8 as render_core renders the pose (front camera of the avatar, black background)."""
+    avatar, renderer = reference
+    frame = Frame.from_params(avatar, expression=torch.tensor(np.asarray(coefficients, np.float32)),
+                              joints={k: torch.tensor(np.asarray(v, np.float32)) for k, v in joints.items()})
+    out = renderer.render(frame, default_camera(avatar, size, size), torch.zeros(3))
+    rgba = torch.cat([out.rgb[0], out.alpha[0, ..., None]], -1)
+    return (rgba.clamp(0, 1) * 255 + 0.5).to(torch.uint8).numpy()
+
+
+def random_pose(rng: np.random.Generator, k: int) -> tuple[list[float], dict[str, list[float]]]:
+    coefficients = rng.uniform(0, 1, k).astype(np.float32).tolist()
+    joints = {name: rng.normal(0, 0.15, 3).astype(np.float32).tolist() for name in ("neck", "jaw")}
+    return coefficients, joints
+
+
+def frame_params(index: int, coefficients, joints) -> pb.FrameParams:
+    return pb.FrameParams(index=index, coefficients=coefficients,
+                          joints={k: pb.Rotation(values=v) for k, v in joints.items()})
+
+
+class GrpcStream:
+    """A RenderStream driven step by step from the test."""
+
+    def __init__(self, stub, **config):
+        self._requests: queue.Queue = queue.Queue()
+        self._requests.put(pb.StreamRequest(open=pb.SessionConfig(**config)))
+        self._responses = stub.RenderStream(iter(self._requests.get, None))
+
+    def send(self, **message) -> None:
+        self._requests.put(pb.StreamRequest(**message))
+
+    def next(self) -> pb.StreamResponse:
+        return next(self._responses)
+
+    def close(self) -> list[pb.StreamResponse]:
+        """Half-close and return what is left, the final status last."""
+        self._requests.put(None)
+        return list(self._responses)
+
+
+class WsStream:
+    """The same over the WebSocket (binary protobuf, or protobuf JSON with ``json_mode``)."""
+
+    def __init__(self, url: str, json_mode: bool = False, **config):
+        self._connection = connect(url, max_size=64 << 20, open_timeout=30)
+        self.ws, self.json_mode = self._connection.__enter__(), json_mode
+        self.send(open=pb.SessionConfig(**config))
+
+    def send(self, **message) -> None:
+        request = pb.StreamRequest(**message)
+        from google.protobuf import json_format
+
+        self.ws.send(json_format.MessageToJson(request) if self.json_mode else request.SerializeToString())
+
+    def send_raw(self, data: bytes | str) -> None:
+        self.ws.send(data)
+
+    def next(self) -> pb.StreamResponse:
+        from google.protobuf import json_format
+
+        data = self.ws.recv(timeout=60)
+        if isinstance(data, str):
+            return json_format.Parse(data, pb.StreamResponse())
+        return pb.StreamResponse.FromString(data)
+
+    def close(self) -> None:
+        self._connection.__exit__(None, None, None)
+
+
+def next_frame(stream) -> pb.RenderedFrame:
+    reply = stream.next()
+    assert reply.WhichOneof("msg") == "frame", reply
+    return reply.frame
+
+
+def run_lockstep(stream, reference, frames: int, codec: str, seed: int) -> None:
+    """Send a pose, wait for its frame, compare it with render_core's image, acknowledge; ``frames`` times."""
+    header = stream.next().header
+    assert list(header.expression_names) == reference[0].expression_names
+    assert (header.width, header.height, header.max_in_flight) == (SIZE, SIZE, 2)
+    rng = np.random.default_rng(seed)
+    decoder = H264Decoder() if codec == "h264" else None
+    for i in range(1, frames + 1):
+        coefficients, joints = random_pose(rng, len(header.expression_names))
+        stream.send(frame=frame_params(i, coefficients, joints))
+        frame = next_frame(stream)
+        assert frame.index == i and frame.dropped == 0
+        expected = expected_image(reference, coefficients, joints)
+        if decoder is not None:
+            got = decoder.decode(frame.data)
+            err = np.mean((got.astype(np.float64) - expected[..., :3]) ** 2)
+            assert 10 * np.log10(255**2 / max(err, 1e-12)) > 30
+        else:
+            got = decode_image(codec, frame.data, SIZE, SIZE)
+            assert np.abs(got.astype(int) - expected.astype(int)).max() <= 1, f"frame {i} differs"
+        assert frame.timings.total_ms > 0 and frame.timings.batch >= 1
+        stream.send(ack=pb.Ack(index=i))
+
+
+# ---------------------------------------------------------------------------------------------- streams
+@pytest.mark.parametrize("codec", ["raw_rgba", "png"])
+def test_grpc_stream_of_60_frames_matches_render_core(stub, reference, codec):
+    stream = GrpcStream(stub, avatar_id="demo", width=SIZE, height=SIZE,
+                        codec={"raw_rgba": pb.CODEC_RAW_RGBA, "png": pb.CODEC_PNG}[codec])
+    run_lockstep(stream, reference, 60, codec, seed=1)
+    rest = stream.close()
+    assert rest[-1].status.code == pb.OK and rest[-1].status.frames_sent == 60
+
+
+def test_websocket_stream_of_60_frames_matches_render_core(live_server, reference):
+    stream = WsStream(live_server.ws_url, avatar_id="demo", width=SIZE, height=SIZE, codec=pb.CODEC_PNG)
+    try:
+        run_lockstep(stream, reference, 60, "png", seed=2)
+    finally:
+        stream.close()
+
+
+def test_websocket_json_mode_and_h264(live_server, reference):
+    stream = WsStream(live_server.ws_url, json_mode=True, avatar_id="demo", width=SIZE, height=SIZE,
+                      codec=pb.CODEC_H264)
+    try:
+        run_lockstep(stream, reference, 8, "h264", seed=3)
+    finally:
+        stream.close()
+
+
+def test_named_and_positional_coefficients_agree(stub, reference):
+    names = reference[0].expression_names
+    rng = np.random.default_rng(5)
+    values = rng.uniform(0, 1, len(names)).astype(np.float32).tolist()
+    order = names[::-1]  # the client's own order
+    by_name = dict(zip(names, values, strict=True))
+    frames = []
+    for config, params in (
+        ({}, pb.FrameParams(index=1, coefficients=values)),
+        ({}, pb.FrameParams(index=1, named_coefficients=by_name)),
+        ({"expression_names": order}, pb.FrameParams(index=1, coefficients=[by_name[n] for n in order])),
+    ):
+        stream = GrpcStream(stub, avatar_id="demo", width=SIZE, height=SIZE, codec=pb.CODEC_RAW_RGBA, **config)
+        stream.next()
+        stream.send(frame=params)
+        frames.append(next_frame(stream).data)
+        stream.close()
+    assert frames[0] == frames[1] == frames[2]
+    assert np.array_equal(decode_image("raw_rgba", frames[0], SIZE, SIZE), expected_image(reference, values, {}))
+
+
+BAD_FRAMES = [
+    ("NaN coefficient", pb.FrameParams(index=7, named_coefficients={"exp_00": float("nan")}), "expression.exp_00"),
+    ("Inf coefficient", pb.FrameParams(index=7, coefficients=[float("inf")] + [0.0] * 7), "expression.exp_00"),
+    ("wrong count", pb.FrameParams(index=7, coefficients=[0.1, 0.2]), "coefficients"),
+    ("unknown name", pb.FrameParams(index=7, named_coefficients={"smile": 1.0}), "expression"),
+    ("both forms", pb.FrameParams(index=7, coefficients=[0.0] * 8, named_coefficients={"exp_00": 1.0}),
+     "coefficients"),
+    ("unknown joint", pb.FrameParams(index=7, joints={"tail": pb.Rotation(values=[0, 0, 0])}), "joints"),
+    ("rotation size", pb.FrameParams(index=7, joints={"jaw": pb.Rotation(values=[0, 0])}), "joints.jaw"),
+    ("NaN rotation", pb.FrameParams(index=7, joints={"jaw": pb.Rotation(values=[float("nan"), 0, 0])}),
+     "joints.jaw"),
+    ("eyelids", pb.FrameParams(index=7, eyelids=[0.5]), "eyelids"),
+    ("camera preset", pb.FrameParams(index=7, camera=pb.Camera(preset="behind")), "camera"),
+    ("camera K", pb.FrameParams(index=7, camera=pb.Camera(opencv=pb.OpenCVCamera(k=[1, 2]))), "camera.opencv.k"),
+    ("background", pb.FrameParams(index=7, background=pb.Color(r=2.0)), "background"),
+]
+
+
+def _check_bad_then_good(stream, message: dict, field: str | None) -> None:
+    stream.send(**message)
+    reply = stream.next()
+    assert reply.WhichOneof("msg") == "error", reply
+    assert reply.error.code == pb.INVALID_ARGUMENT
+    if field is not None:
+        assert reply.error.field == field, reply.error
+    stream.send(frame=pb.FrameParams(index=99))  # the stream goes on
+    frame = next_frame(stream)
+    assert frame.index == 99
+    stream.send(ack=pb.Ack(index=99))
+
+
+@pytest.mark.parametrize("name,params,field", BAD_FRAMES, ids=[b[0] for b in BAD_FRAMES])
+def test_bad_frame_gets_invalid_argument_and_the_stream_survives(stub, name, params, field):
+    stream = GrpcStream(stub, avatar_id="demo", width=SIZE, codec=pb.CODEC_JPEG)
+    stream.next()
+    _check_bad_then_good(stream, {"frame": params}, field)
+    stream.close()
+
+
+def test_bad_stream_messages_over_grpc(stub):
+    stream = GrpcStream(stub, avatar_id="demo", width=SIZE)
+    stream.next()
+    _check_bad_then_good(stream, {"open": pb.SessionConfig(avatar_id="demo")}, "open")
+    _check_bad_then_good(stream, {}, "msg")
+    assert stream.close()[-1].status.code == pb.OK
+
+
+def test_bad_stream_messages_over_websocket(live_server):
+    for json_mode, garbage in ((False, b"\xff\xff\xff not protobuf"), (True, "{not json")):
+        stream = WsStream(live_server.ws_url, json_mode=json_mode, avatar_id="demo", width=SIZE)
+        try:
+            stream.next()
+            stream.send_raw(garbage)
+            reply = stream.next()
+            assert reply.error.code == pb.INVALID_ARGUMENT and "StreamRequest" in reply.error.message
+            _check_bad_then_good(stream, {"frame": BAD_FRAMES[0][1]}, "expression.exp_00")
+        finally:
+            stream.close()
+
+
+@pytest.mark.parametrize("config,code,field", [
+    ({"avatar_id": "nobody"}, grpc.StatusCode.NOT_FOUND, "avatar_id"),
+    ({"avatar_id": "../etc/passwd"}, grpc.StatusCode.INVALID_ARGUMENT, "avatar_id"),
+    ({"avatar_id": "demo", "width": 100_000}, grpc.StatusCode.INVALID_ARGUMENT, "width"),
+    ({"avatar_id": "demo", "codec": 42}, grpc.StatusCode.INVALID_ARGUMENT, "codec"),
+    ({"avatar_id": "demo", "quality": 101}, grpc.StatusCode.INVALID_ARGUMENT, "quality"),
+    ({"avatar_id": "demo", "max_in_flight": 1000}, grpc.StatusCode.INVALID_ARGUMENT, "max_in_flight"),
+    ({"avatar_id": "demo", "expression_names": ["smile"]}, grpc.StatusCode.INVALID_ARGUMENT, "expression_names"),
+])
+def test_bad_open_gets_its_status_code(stub, config, code, field):
+    stream = GrpcStream(stub, **config)
+    with pytest.raises(grpc.RpcError) as e:
+        stream.next()
+    assert e.value.code() == code
+    assert e.value.details().startswith(field), e.value.details()
+
+
+def test_first_message_must_open(stub):
+    responses = stub.RenderStream(iter([pb.StreamRequest(frame=pb.FrameParams(index=1))]))
+    with pytest.raises(grpc.RpcError) as e:
+        list(responses)
+    assert e.value.code() == grpc.StatusCode.INVALID_ARGUMENT
+
+
+def test_session_limit_gives_resource_exhausted(live_server, stub):
+    engine = live_server.engine
+    limit, engine.settings.max_sessions = engine.settings.max_sessions, len(engine.sessions) + 1
+    try:
+        first = GrpcStream(stub, avatar_id="demo", width=SIZE)
+        first.next()
+        second = GrpcStream(stub, avatar_id="demo", width=SIZE)
+        with pytest.raises(grpc.RpcError) as e:
+            second.next()
+        assert e.value.code() == grpc.StatusCode.RESOURCE_EXHAUSTED
+        ws = WsStream(live_server.ws_url, avatar_id="demo", width=SIZE)
+        reply = ws.next()
+        assert reply.status.code == pb.RESOURCE_EXHAUSTED
+        ws.close()
+        first.close()
+    finally:
+        engine.settings.max_sessions = limit
+
+
+def test_slow_reader_stays_bounded_and_newest_pose_wins(live_server, stub):
+    engine = live_server.engine
+    stream = GrpcStream(stub, avatar_id="demo", width=SIZE, codec=pb.CODEC_RAW_RGBA, max_in_flight=2)
+    session_id = stream.next().header.session_id
+    session = engine.sessions[session_id]
+    for i in range(1, 301):  # never acknowledged
+        stream.send(frame=pb.FrameParams(index=i, named_coefficients={"exp_00": i / 300}))
+    deadline = time.monotonic() + 30
+    while session.dropped < 290 and time.monotonic() < deadline:
+        time.sleep(0.02)
+    time.sleep(0.2)
+    assert session.sent == 2 and len(session.unacked) == 2 and session.rendering == 0
+    assert session._replies.qsize() <= 2  # at most max_in_flight frames held for this reader
+    assert session.pending is not None and session.pending.index == 300  # the newest pose waits
+    assert session.dropped == 300 - 2 - 1
+    first, second = next_frame(stream), next_frame(stream)
+    assert (first.index, second.index) == (1, 2) or first.index == 1
+    stream.send(ack=pb.Ack(index=second.index))
+    latest = next_frame(stream)
+    assert latest.index == 300 and latest.dropped == 297
+    stream.send(ack=pb.Ack(index=300))
+    assert stream.close()[-1].status.dropped == 297
+
+
+def test_concurrent_sessions_of_one_avatar_render_as_one_batch(live_server):
+    engine = live_server.engine
+
+    async def two_sessions():
+        config = pb.SessionConfig(avatar_id="demo", width=SIZE, codec=pb.CODEC_RAW_RGBA)
+        sessions = [await engine.open(config, "test") for _ in range(2)]
+        for i, s in enumerate(sessions):  # both poses arrive before the scheduler runs
+            s.handle(pb.StreamRequest(frame=pb.FrameParams(index=1, named_coefficients={"exp_01": 0.5 * i})))
+        frames = []
+        for s in sessions:
+            async for reply in s.responses():
+                frames.append(reply.frame)
+                break
+            s.end_input()
+        return frames, sessions
+
+    frames, sessions = live_server.call(two_sessions())
+    assert [f.timings.batch for f in frames] == [2, 2]
+    assert frames[0].data != frames[1].data
+    assert all(s.closed for s in sessions)
+
+
+# ------------------------------------------------------------------------------------------ unary and REST
+def test_unary_grpc_calls(stub, reference):
+    listed = stub.ListAvatars(pb.ListAvatarsRequest())
+    assert [a.id for a in listed.avatars] == ["demo"]
+    info = stub.GetAvatar(pb.GetAvatarRequest(id="demo"))
+    assert info.gaussians == reference[0].num_gaussians + reference[0].num_mouth
+    assert list(info.joint_names) == reference[0].joint_names
+    with pytest.raises(grpc.RpcError) as e:
+        stub.GetAvatar(pb.GetAvatarRequest(id="nobody"))
+    assert e.value.code() == grpc.StatusCode.NOT_FOUND
+    assert stub.UnloadAvatar(pb.UnloadAvatarRequest(id="demo")).loaded is False
+    assert stub.GetAvatar(pb.GetAvatarRequest(id="demo")).loaded is False
+    assert stub.LoadAvatar(pb.LoadAvatarRequest(id="demo")).loaded is True
+    coefficients, joints = random_pose(np.random.default_rng(9), len(info.expression_names))
+    reply = stub.Render(pb.RenderRequest(avatar_id="demo", width=SIZE, codec=pb.CODEC_PNG,
+                                         frame=frame_params(3, coefficients, joints)))
+    got = decode_image("png", reply.frame.data, SIZE, SIZE)
+    assert np.abs(got.astype(int) - expected_image(reference, coefficients, joints).astype(int)).max() <= 1
+    with pytest.raises(grpc.RpcError) as e:
+        stub.Render(pb.RenderRequest(avatar_id="demo", frame=pb.FrameParams(eyelids=[1, 2, 3])))
+    assert e.value.code() == grpc.StatusCode.INVALID_ARGUMENT and "eyelids" in e.value.details()
+
+
+def test_grpc_health_and_reflection(live_server):
+    from grpc_reflection.v1alpha import reflection_pb2, reflection_pb2_grpc
+
+    with grpc.insecure_channel(live_server.grpc_target) as channel:
+        health = health_pb2_grpc.HealthStub(channel)
+        for service in ("", "blendsplat.v1.RenderService"):
+            status = health.Check(health_pb2.HealthCheckRequest(service=service)).status
+            assert status == health_pb2.HealthCheckResponse.SERVING
+        stub = reflection_pb2_grpc.ServerReflectionStub(channel)
+        reply = next(stub.ServerReflectionInfo(iter([reflection_pb2.ServerReflectionRequest(list_services="")])))
+        names = {s.name for s in reply.list_services_response.service}
+        assert {"blendsplat.v1.RenderService", "grpc.health.v1.Health"} <= names
+
+
+def test_rest_avatars_render_and_errors(live_server, reference):
+    http = httpx.Client(base_url=live_server.http_url, timeout=60)
+    assert http.get("/healthz").json() == {"status": "ok"}
+    ready = http.get("/readyz")
+    assert ready.status_code == 200 and ready.json()["ready"] is True
+    avatars = http.get("/v1/avatars").json()["avatars"]
+    assert avatars[0]["id"] == "demo" and avatars[0]["expressionNames"] == reference[0].expression_names
+    assert http.get("/v1/avatars/nobody").status_code == 404
+    assert http.post("/v1/avatars/demo/unload").json()["loaded"] is False
+    assert http.post("/v1/avatars/demo/load").json()["loaded"] is True
+
+    coefficients, joints = random_pose(np.random.default_rng(4), 8)
+    body = {"avatarId": "demo", "width": SIZE, "codec": "CODEC_PNG",
+            "frame": {"coefficients": coefficients, "joints": {k: {"values": v} for k, v in joints.items()}}}
+    r = http.post("/v1/render", json=body)
+    assert r.status_code == 200 and r.headers["content-type"] == "image/png"
+    assert "raster_ms" in r.headers["x-blendsplat-timings"] or "rasterMs" in r.headers["x-blendsplat-timings"]
+    got = decode_image("png", r.content, SIZE, SIZE)
+    assert np.abs(got.astype(int) - expected_image(reference, coefficients, joints).astype(int)).max() <= 1
+
+    bad = http.post("/v1/render", json={"avatarId": "demo", "frame": {"coefficients": [1.0]}})
+    assert bad.status_code == 422 and bad.json()["error"]["field"] == "coefficients"
+    assert http.post("/v1/render", content=b"{nope").status_code == 422
+    assert http.post("/v1/render", json={"avatarId": "ghost"}).status_code == 404
+    assert http.get("/docs").status_code == 200
+    paths = http.get("/openapi.json").json()["paths"]
+    assert {"/v1/avatars", "/v1/avatars/{avatar_id}", "/v1/render", "/readyz"} <= set(paths)
+
+
+def test_rest_upload_validates_before_storing(live_server, tmp_path):
+    http = httpx.Client(base_url=live_server.http_url, timeout=60)
+    store = live_server.engine.store
+    bundle = tmp_path / "small.bundle"
+    write_bundle(synth_avatar(gaussians=300, blendshapes=3, seed=8), bundle, precision="fp16")
+    data = bundle.read_bytes()
+    try:
+        r = http.put("/v1/avatars/small", content=data)
+        assert r.status_code == 201, r.text
+        assert r.json()["gaussians"] == str(300 + 300 // 8)
+        assert "small" in [a["id"] for a in http.get("/v1/avatars").json()["avatars"]]
+
+        corrupt = bytearray(data)
+        corrupt[-10] ^= 0xFF
+        for body in (bytes(corrupt), data[: len(data) // 2], b"hello"):
+            r = http.put("/v1/avatars/broken", content=body)
+            assert r.status_code == 422 and r.json()["error"]["field"] == "bundle", r.text
+        limit, live_server.engine.settings.max_upload_bytes = live_server.engine.settings.max_upload_bytes, 1024
+        try:
+            r = http.put("/v1/avatars/big", content=data)
+            assert r.status_code == 422 and "limit" in r.json()["error"]["message"]
+        finally:
+            live_server.engine.settings.max_upload_bytes = limit
+        assert http.put("/v1/avatars/..%2Fescape", content=data).status_code in (404, 422)
+        assert sorted(store.ids()) == ["demo", "small"]
+        assert not [p for p in store.root.iterdir() if p.name.endswith(".tmp")]  # nothing staged is left
+    finally:
+        store.path("small").unlink(missing_ok=True)
+        live_server.engine.cache.unload("small")
+
+
+def _metric(text: str, name: str, labels: str = "") -> float:
+    for line in text.splitlines():
+        if line.startswith(name + (labels and "{") ) and (not labels or labels in line):
+            return float(line.rsplit(" ", 1)[1])
+    return 0.0
+
+
+def test_metrics_counters_move(live_server, stub):
+    http = httpx.Client(base_url=live_server.http_url, timeout=60)
+    before = http.get("/metrics").text
+    stream = GrpcStream(stub, avatar_id="demo", width=SIZE, codec=pb.CODEC_JPEG)
+    stream.next()
+    stream.send(frame=pb.FrameParams(index=1))
+    next_frame(stream)
+    stream.send(frame=pb.FrameParams(index=2, coefficients=[1.0]))
+    stream.next()
+    stream.close()
+    after = http.get("/metrics").text
+    assert "# TYPE blendsplat_frames_total counter" in after
+    for name, labels in (("blendsplat_frames_total", 'codec="jpeg"'), ("blendsplat_bytes_out_total", 'codec="jpeg"'),
+                         ("blendsplat_sessions_total", 'transport="grpc"'),
+                         ("blendsplat_errors_total", 'code="INVALID_ARGUMENT"'),
+                         ("blendsplat_avatar_cache_hits_total", ""),
+                         ("blendsplat_stage_seconds_count", 'stage="raster"')):
+        assert _metric(after, name, labels) > _metric(before, name, labels), name
+    assert _metric(after, "blendsplat_ready") == 1.0
+
+
+def test_drain_flips_health_and_ends_streams_with_unavailable(tmp_path):
+    from tests.conftest import LiveServer
+
+    server = LiveServer(tmp_path, shutdown_delay_seconds=1.5, drain_seconds=5)
+    http = httpx.Client(base_url=server.http_url, timeout=30)
+    channel = grpc.insecure_channel(server.grpc_target)
+    health = health_pb2_grpc.HealthStub(channel)
+    stub = pb_grpc.RenderServiceStub(channel)
+    try:
+        stream = GrpcStream(stub, avatar_id="demo", width=SIZE)
+        stream.next()
+        ws = WsStream(server.ws_url, avatar_id="demo", width=SIZE)
+        ws.next()
+        assert http.get("/readyz").status_code == 200
+        stopping = __import__("asyncio").run_coroutine_threadsafe(server.service.stop(), server.loop)
+        time.sleep(0.3)
+        # Not ready at once, but open streams still get frames during the shutdown delay.
+        r = http.get("/readyz")
+        assert r.status_code == 503 and r.json()["checks"]["not_draining"] is False
+        assert health.Check(health_pb2.HealthCheckRequest(service="")).status == \
+            health_pb2.HealthCheckResponse.NOT_SERVING
+        with pytest.raises(grpc.RpcError) as e:
+            late = GrpcStream(stub, avatar_id="demo", width=SIZE)
+            late.next()
+        assert e.value.code() == grpc.StatusCode.UNAVAILABLE
+        stream.send(frame=pb.FrameParams(index=5))
+        assert next_frame(stream).index == 5
+        ws.send(frame=pb.FrameParams(index=6))
+        assert next_frame(ws).index == 6
+        # Then every stream ends with UNAVAILABLE, and so does the gRPC call.
+        assert stream.next().status.code == pb.UNAVAILABLE
+        with pytest.raises(grpc.RpcError) as e:
+            stream.next()
+        assert e.value.code() == grpc.StatusCode.UNAVAILABLE
+        assert ws.next().status.code == pb.UNAVAILABLE
+        stopping.result(30)
+    finally:
+        channel.close()
+        server.loop.call_soon_threadsafe(server.loop.stop)
+        server.thread.join(10)
+
+
+def test_settings_come_from_the_environment(monkeypatch, tmp_path):
+    from pydantic import ValidationError
+
+    from service.settings import Settings
+
+    monkeypatch.setenv("BLENDSPLAT_MAX_SESSIONS", "7")
+    monkeypatch.setenv("BLENDSPLAT_DATA_DIR", str(tmp_path))
+    s = Settings()
+    assert s.max_sessions == 7 and s.bundle_dir == tmp_path / "bundles"
+    monkeypatch.setenv("BLENDSPLAT_GRPC_PORT", "99999")
+    with pytest.raises(ValidationError, match="grpc_port"):
+        Settings()
+
+
+def test_error_json_shape(live_server):
+    r = httpx.get(live_server.http_url + "/v1/avatars/no-such-avatar")
+    error = r.json()["error"]
+    assert r.status_code == 404 and error["code"] == "NOT_FOUND" and error["field"] == "avatar_id"
+    assert json.loads(json.dumps(error))
