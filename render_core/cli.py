@@ -194,11 +194,12 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--frames", type=int, default=60)
     d.add_argument("--gaussians", type=int, default=10_000)
     d.set_defaults(fn=cmd_demo)
+    p.commands, p.bench_commands = sub, bsub  # where other packages (service.cli) add their commands
     return p
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+def main(argv: list[str] | None = None, parser: argparse.ArgumentParser | None = None) -> int:
+    args = (parser or build_parser()).parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, stream=sys.stderr,
                         format="%(levelname)s %(name)s: %(message)s")
     for attr in ("size", "gaussians", "streams", "frames"):

@@ -1,0 +1,78 @@
+"""The `blendsplat` command: render_core's commands plus `serve` and `bench stream`."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import sys
+from pathlib import Path
+
+from render_core import cli as core_cli
+
+
+def cmd_serve(args: argparse.Namespace) -> int:
+    from pydantic import ValidationError
+
+    from .server import serve
+    from .settings import Settings
+
+    overrides = {k: v for k, v in (("grpc_port", args.grpc_port), ("http_port", args.http_port),
+                                   ("data_dir", args.data_dir), ("host", args.host)) if v is not None}
+    try:
+        settings = Settings(**overrides)
+    except ValidationError as e:
+        print(f"blendsplat: error: invalid settings (environment BLENDSPLAT_* or options):\n{e}", file=sys.stderr)
+        return 2
+    asyncio.run(serve(settings))
+    return 0
+
+
+def cmd_bench_stream(args: argparse.Namespace) -> int:
+    from .bench_stream import bench_stream
+
+    result = asyncio.run(bench_stream(args.target, args.avatar, streams=args.streams, seconds=args.seconds,
+                                      fps=args.fps, size=args.size, codec=args.codec, warmup=args.warmup,
+                                      seed=args.seed))
+    if args.json:
+        print(json.dumps(result))
+    else:
+        print(json.dumps(result, indent=2))
+    return 0 if result["frames"] else 1
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from .bench_stream import CODECS
+
+    p = core_cli.build_parser()
+    s = p.commands.add_parser("serve", help="run the streaming render service (gRPC + HTTP) until SIGTERM",
+                              description="Settings come from BLENDSPLAT_* environment variables "
+                                          "(see service/settings.py); these options override them.")
+    s.add_argument("--grpc-port", type=int, default=None, help="default 50051 (0: any free port)")
+    s.add_argument("--http-port", type=int, default=None, help="default 8080 (0: any free port)")
+    s.add_argument("--data-dir", type=Path, default=None, help="bundle store root (default ./data)")
+    s.add_argument("--host", default=None, help="interface to listen on (default 0.0.0.0)")
+    s.set_defaults(fn=cmd_serve)
+
+    b = p.bench_commands.add_parser("stream", help="drive a running service over gRPC: fps and pose-to-frame "
+                                                   "latency per stream")
+    b.add_argument("--target", required=True, help="HOST:PORT of the gRPC server")
+    b.add_argument("--avatar", required=True, help="avatar id")
+    b.add_argument("--streams", type=int, default=1)
+    b.add_argument("--seconds", type=float, default=10.0, help="measured time (after the warm-up)")
+    b.add_argument("--warmup", type=float, default=1.0, help="seconds streamed first and not counted")
+    b.add_argument("--fps", type=float, default=30.0, help="poses sent per second per stream")
+    b.add_argument("--size", type=int, default=512)
+    b.add_argument("--codec", choices=sorted(CODECS), default="jpeg")
+    b.add_argument("--seed", type=int, default=0)
+    b.add_argument("--json", action="store_true", help="one JSON line")
+    b.set_defaults(fn=cmd_bench_stream)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    return core_cli.main(argv, build_parser())
+
+
+if __name__ == "__main__":
+    sys.exit(main())
