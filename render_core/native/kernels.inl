@@ -20,24 +20,36 @@ constexpr int kMaxLanes = 16;
 
 // ------------------------------------------------------------------------------------------------ blend
 
-// acc[g][0..DP) += sum_j psi[g][col[j]] vals[j] for GB frames g, two vectors of the row at a time.
+// acc[g][d..d + NV W) += sum_j psi[g][col[j]] vals[j][d..] for GB frames g: NV vectors of accumulators per frame
+// stay in registers while the pairs stream by.
+template <class T, int DP, int GB, int NV>
+static inline void blend_slice(const AvatarView& av, const float* psi, const T* vals, int j0, int j1, float* acc,
+                               int d) {
+    F a[GB][NV];
+    for (int g = 0; g < GB; ++g)
+        for (int v = 0; v < NV; ++v) a[g][v] = V::load(acc + g * DP + d + v * W);
+    for (int j = j0; j < j1; ++j) {
+        const int k = av.col[j];
+        const T* row = vals + size_t(j) * av.D + d;
+        F x[NV];
+        for (int v = 0; v < NV; ++v) x[v] = V::load(row + v * W);
+        for (int g = 0; g < GB; ++g) {
+            const F p = V::set1(psi[g * av.K + k]);
+            for (int v = 0; v < NV; ++v) a[g][v] = V::fma(p, x[v], a[g][v]);
+        }
+    }
+    for (int g = 0; g < GB; ++g)
+        for (int v = 0; v < NV; ++v) V::store(acc + g * DP + d + v * W, a[g][v]);
+}
+
+// acc[g][0..DP) += sum_j psi[g][col[j]] vals[j] for GB frames g, two vectors of the row at a time (and one for
+// the last vector when DP is an odd number of vectors, e.g. 16 or 48 floats with 16 lanes).
 template <class T, int DP, int GB>
 static inline void blend_group(const AvatarView& av, const float* psi, const T* vals, int j0, int j1, float* acc) {
-    for (int d = 0; d < DP; d += 2 * W) {
-        F a[GB][2];
-        for (int g = 0; g < GB; ++g) a[g][0] = V::load(acc + g * DP + d), a[g][1] = V::load(acc + g * DP + d + W);
-        for (int j = j0; j < j1; ++j) {
-            const int k = av.col[j];
-            const T* v = vals + size_t(j) * av.D + d;
-            const F x0 = V::load(v), x1 = V::load(v + W);
-            for (int g = 0; g < GB; ++g) {
-                const F p = V::set1(psi[g * av.K + k]);
-                a[g][0] = V::fma(p, x0, a[g][0]);
-                a[g][1] = V::fma(p, x1, a[g][1]);
-            }
-        }
-        for (int g = 0; g < GB; ++g) V::store(acc + g * DP + d, a[g][0]), V::store(acc + g * DP + d + W, a[g][1]);
-    }
+    static_assert(DP % W == 0, "rows are whole vectors");
+    int d = 0;
+    for (; d + 2 * W <= DP; d += 2 * W) blend_slice<T, DP, GB, 2>(av, psi, vals, j0, j1, acc, d);
+    if constexpr (DP % (2 * W) != 0) blend_slice<T, DP, GB, 1>(av, psi, vals, j0, j1, acc, d);
 }
 
 template <class T, int DP>
