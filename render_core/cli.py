@@ -31,7 +31,7 @@ def cmd_bundle_synth(args: argparse.Namespace) -> int:
     from .synth import synth_avatar
 
     avatar = synth_avatar(args.gaussians, args.blendshapes, seed=args.seed, sh_degree=args.sh_degree,
-                          mouth=args.mouth, raster_mode=args.raster_mode)
+                          mouth=args.mouth, raster_mode=args.raster_mode, local=args.local)
     manifest = write_bundle(avatar, args.out, precision=args.precision)
     log.info("wrote %s", args.out)
     _emit({"path": str(args.out), "bytes": Path(args.out).stat().st_size, **manifest["counts"],
@@ -140,6 +140,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--mouth", type=int, default=None, help="mouth Gaussians (default gaussians // 8)")
     s.add_argument("--precision", choices=("fp32", "fp16"), default="fp32")
     s.add_argument("--raster-mode", choices=("classic", "antialiased"), default="classic")
+    s.add_argument("--local", action="store_true",
+                   help="blendshapes with compact support, as a face model's (zero pairs are not stored); "
+                        "default: dense, every pair non-zero")
     s.set_defaults(fn=cmd_bundle_synth)
     s = bsub.add_parser("inspect", help="print a bundle's manifest")
     s.add_argument("file", type=Path)

@@ -26,6 +26,7 @@ CODECS = {name: value for value, name in CODEC_NAMES.items() if value}
 class _Stream:
     latencies: list[float] = field(default_factory=list)
     server_ms: list[float] = field(default_factory=list)
+    stages: list[list[float]] = field(default_factory=list)  # queue, blend, lbs, raster, encode per frame
     bytes: list[int] = field(default_factory=list)
     frames: int = 0
     errors: int = 0
@@ -88,6 +89,8 @@ async def _run_stream(stub: pb_grpc.RenderServiceStub, avatar: str, size: int, c
                     result.frames += 1
                     result.latencies.append((now - sent_at[f.index]) * 1e3)
                     result.server_ms.append(f.timings.total_ms)
+                    t = f.timings
+                    result.stages.append([t.queue_ms, t.blend_ms, t.lbs_ms, t.raster_ms, t.encode_ms])
                     result.bytes.append(len(f.data))
                 sent_at.pop(f.index, None)
             elif kind == "error":
@@ -127,7 +130,9 @@ async def bench_stream(target: str, avatar: str, streams: int = 1, seconds: floa
         "fps_aggregate": round(sum(per_stream), 2), "frames": len(latencies),
         "latency_ms": {"p50": _pct(latencies, 50), "p95": _pct(latencies, 95), "p99": _pct(latencies, 99),
                        "max": round(max(latencies), 2) if latencies else float("nan")},
-        "server_ms": {"p50": _pct(server, 50), "p99": _pct(server, 99)},
+        "server_ms": {"p50": _pct(server, 50), "p99": _pct(server, 99),
+                      **{f"{stage}_p50": _pct([s[i] for r in results for s in r.stages], 50)
+                         for i, stage in enumerate(("queue", "blend", "lbs", "raster", "encode"))}},
         "bytes_per_frame": round(float(np.mean(sizes)), 1) if sizes else 0.0,
         "dropped": sum(r.dropped for r in results), "errors": sum(r.errors for r in results),
         "error_messages": sorted({m for r in results for m in r.messages})[:10],

@@ -31,6 +31,7 @@ from blendsplat.v1 import render_pb2 as pb
 from render_core.camera import Cameras
 from render_core.codecs import Encoder, make_encoder
 from render_core.deform import Frame
+from render_core.raster import native
 
 from . import params
 from .cache import AvatarCache, Loaded
@@ -398,10 +399,10 @@ class Engine:
 
 def _rgba(rgb: torch.Tensor, alpha: torch.Tensor) -> np.ndarray:
     """[B, H, W, 3] and [B, H, W] floats in [0, 1] -> [B, H, W, 4] uint8 (rounded)."""
-    out = torch.empty(*rgb.shape[:-1], 4, dtype=torch.uint8)
-    out[..., :3] = rgb.clamp(0, 1).mul(255).add_(0.5).to(torch.uint8)
-    out[..., 3] = alpha.clamp(0, 1).mul(255).add_(0.5).to(torch.uint8)
-    return out.numpy()
+    if native.available():
+        return native.to_rgba8(rgb, alpha)
+    rgba = torch.cat([rgb, alpha[..., None]], -1)
+    return rgba.clamp(0, 1).mul(255).add_(0.5).to(torch.uint8).numpy()
 
 
 def _render(entry: Loaded, jobs: list[Job], encoders: list[Encoder]) -> list[Rendered | BaseException]:

@@ -109,7 +109,8 @@ def frame(avatar: Avatar, params: pb.FrameParams, order: list[str]) -> Frame:
             raise InvalidArgument(
                 f"expected {len(order)} coefficients in the order {', '.join(order)}; got {len(params.coefficients)}"
                 " (or give them by name in named_coefficients)", field="coefficients")
-        line["expression"] = dict(zip(order, params.coefficients, strict=True))
+        same = order is avatar.expression_names or order == avatar.expression_names
+        line["expression"] = list(params.coefficients) if same else dict(zip(order, params.coefficients, strict=True))
     elif params.named_coefficients:
         line["expression"] = dict(params.named_coefficients)
     if params.joints:

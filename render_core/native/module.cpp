@@ -189,6 +189,24 @@ nb::dict rasterize(In<float> means, In<float> quats, In<float> scales, In<float>
     return timings(tm, k, nt);
 }
 
+// [B, H, W, 3] colour and [B, H, W] alpha in [0, 1] -> [B, H, W, 4] 8-bit RGBA, rounded (what encoders take).
+void to_rgba8(In<float> rgb, In<float> alpha, Out<uint8_t> out, int threads) {
+    require(rgb.ndim() == 4 && rgb.shape(3) == 3, "rgb: expected [B, H, W, 3]");
+    require_shape(alpha, {rgb.shape(0), rgb.shape(1), rgb.shape(2)}, "alpha");
+    require_shape(out, {rgb.shape(0), rgb.shape(1), rgb.shape(2), 4}, "out");
+    const int64_t n = int64_t(alpha.size());
+    const float* c = rgb.data();
+    const float* a = alpha.data();
+    uint8_t* o = out.data();
+    const int nt = thread_count(threads);
+    auto q = [](float x) { return uint8_t(std::min(std::max(x, 0.0f), 1.0f) * 255.0f + 0.5f); };
+    nb::gil_scoped_release release;
+#pragma omp parallel for num_threads(nt) schedule(static)
+    for (int64_t i = 0; i < n; ++i) {
+        o[4 * i] = q(c[3 * i]), o[4 * i + 1] = q(c[3 * i + 1]), o[4 * i + 2] = q(c[3 * i + 2]), o[4 * i + 3] = q(a[i]);
+    }
+}
+
 // Best-of-five parallel read of nbytes (uint64 sums): the memory bandwidth a streaming blend can reach.
 nb::dict bandwidth_probe(size_t nbytes, int threads) {
     const int nt = thread_count(threads);
@@ -233,6 +251,7 @@ NB_MODULE(_native, m) {
     m.def("rasterize", &rasterize, "means"_a, "quats"_a, "scales"_a, "opacities"_a, "colors"_a, "K"_a, "R"_a, "t"_a,
           "width"_a, "height"_a, "antialiased"_a, "background"_a, "rgb"_a, "alpha"_a, "depth"_a, "isa"_a = "auto",
           "threads"_a = 0);
+    m.def("to_rgba8", &to_rgba8, "rgb"_a, "alpha"_a, "out"_a, "threads"_a = 0);
     m.def("available_isas", &bs::available_isas, "SIMD paths this build can run here, slowest first.");
     m.def("bandwidth_probe", &bandwidth_probe, "nbytes"_a, "threads"_a = 0);
     m.def("max_threads", []() { return omp_get_max_threads(); });

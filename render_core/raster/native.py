@@ -276,3 +276,11 @@ def bandwidth_probe(nbytes: int, threads: int = 0) -> dict:
     """Read ``nbytes`` from memory with all threads (best of several passes): the bound a streaming blend meets."""
     _require()
     return dict(_native.bandwidth_probe(int(nbytes), threads))
+
+
+def to_rgba8(rgb: Tensor, alpha: Tensor, threads: int = 0) -> np.ndarray:
+    """[B, H, W, 3] colour and [B, H, W] alpha in [0, 1] -> [B, H, W, 4] uint8 RGBA, rounded (for encoders)."""
+    _require()
+    out = np.empty((*alpha.shape, 4), np.uint8)
+    _native.to_rgba8(_np(rgb), _np(alpha), out, threads)
+    return out
