@@ -43,7 +43,7 @@ def _pose(rng: np.random.Generator, k: int, joints: list[str], index: int) -> pb
 
 
 async def _run_stream(stub: pb_grpc.RenderServiceStub, avatar: str, size: int, codec: str, fps: float,
-                      seconds: float, warmup: float, seed: int) -> _Stream:
+                      seconds: float, warmup: float, seed: int, ack: bool = True) -> _Stream:
     result = _Stream()
     outbox: asyncio.Queue[pb.StreamRequest | None] = asyncio.Queue()
     sent_at: dict[int, float] = {}
@@ -84,8 +84,9 @@ async def _run_stream(stub: pb_grpc.RenderServiceStub, avatar: str, size: int, c
                 header_seen.set()
             elif kind == "frame":
                 f = reply.frame
-                outbox.put_nowait(pb.StreamRequest(ack=pb.Ack(index=f.index)))
-                if sent_at.get(f.index, 0.0) >= count_from:
+                if ack:
+                    outbox.put_nowait(pb.StreamRequest(ack=pb.Ack(index=f.index)))
+                if sent_at.get(f.index, 0.0) >= count_from or not ack:
                     result.frames += 1
                     result.latencies.append((now - sent_at[f.index]) * 1e3)
                     result.server_ms.append(f.timings.total_ms)
@@ -113,12 +114,30 @@ def _pct(values: list[float], q: float) -> float:
     return round(float(np.percentile(values, q)), 2) if values else float("nan")
 
 
+def _server_rss(metrics_url: str | None) -> float | None:
+    """The server's resident memory (MB) from its Prometheus endpoint, if given."""
+    if not metrics_url:
+        return None
+    import urllib.request
+
+    with urllib.request.urlopen(metrics_url, timeout=10) as r:
+        for line in r.read().decode().splitlines():
+            if line.startswith("process_resident_memory_bytes "):
+                return round(float(line.split()[1]) / 1e6, 1)
+    return None
+
+
 async def bench_stream(target: str, avatar: str, streams: int = 1, seconds: float = 10.0, fps: float = 30.0,
-                       size: int = 512, codec: str = "jpeg", warmup: float = 1.0, seed: int = 0) -> dict:
+                       size: int = 512, codec: str = "jpeg", warmup: float = 1.0, seed: int = 0,
+                       ack: bool = True, metrics_url: str | None = None) -> dict:
+    """``ack=False``: readers that never acknowledge (flow control must keep the server's memory flat; with
+    ``metrics_url`` the server's resident memory before and after is reported)."""
+    rss_before = _server_rss(metrics_url)
     async with grpc.aio.insecure_channel(target, options=[("grpc.max_receive_message_length", 64 << 20)]) as ch:
         stub = pb_grpc.RenderServiceStub(ch)
         results = await asyncio.gather(*(
-            _run_stream(stub, avatar, size, codec, fps, seconds, warmup, seed + i) for i in range(streams)))
+            _run_stream(stub, avatar, size, codec, fps, seconds, warmup, seed + i, ack) for i in range(streams)))
+        rss_during = _server_rss(metrics_url)
     latencies = [x for r in results for x in r.latencies]
     server = [x for r in results for x in r.server_ms]
     sizes = [x for r in results for x in r.bytes]
@@ -136,4 +155,5 @@ async def bench_stream(target: str, avatar: str, streams: int = 1, seconds: floa
         "bytes_per_frame": round(float(np.mean(sizes)), 1) if sizes else 0.0,
         "dropped": sum(r.dropped for r in results), "errors": sum(r.errors for r in results),
         "error_messages": sorted({m for r in results for m in r.messages})[:10],
+        "acks": ack, "server_rss_mb": {"before": rss_before, "end": rss_during},
     }

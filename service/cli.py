@@ -33,7 +33,7 @@ def cmd_bench_stream(args: argparse.Namespace) -> int:
 
     result = asyncio.run(bench_stream(args.target, args.avatar, streams=args.streams, seconds=args.seconds,
                                       fps=args.fps, size=args.size, codec=args.codec, warmup=args.warmup,
-                                      seed=args.seed))
+                                      seed=args.seed, ack=not args.no_ack, metrics_url=args.metrics_url))
     if args.json:
         print(json.dumps(result))
     else:
@@ -65,6 +65,9 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--size", type=int, default=512)
     b.add_argument("--codec", choices=sorted(CODECS), default="jpeg")
     b.add_argument("--seed", type=int, default=0)
+    b.add_argument("--no-ack", action="store_true", help="readers that never acknowledge a frame (flow control)")
+    b.add_argument("--metrics-url", default=None,
+                   help="the server's /metrics URL: report its resident memory before and at the end")
     b.add_argument("--json", action="store_true", help="one JSON line")
     b.set_defaults(fn=cmd_bench_stream)
     return p

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
+from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, ProcessCollector
 
 STAGES = ("queue", "blend", "lbs", "raster", "encode", "total")
 # Milliseconds-scale frame stages, in seconds.
@@ -12,6 +12,7 @@ _BUCKETS = (0.001, 0.002, 0.004, 0.008, 0.012, 0.016, 0.024, 0.033, 0.05, 0.075,
 class Metrics:
     def __init__(self) -> None:
         r = self.registry = CollectorRegistry()
+        ProcessCollector(registry=r)  # process_resident_memory_bytes, CPU seconds, open fds
         self.frames = Counter("blendsplat_frames", "frames rendered and sent", ["codec"], registry=r)
         self.bytes_out = Counter("blendsplat_bytes_out", "encoded frame bytes sent", ["codec"], registry=r)
         self.dropped = Counter("blendsplat_dropped_frames", "poses replaced by newer ones before rendering",

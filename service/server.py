@@ -10,6 +10,7 @@ ends with an UNAVAILABLE status, then both servers stop - all within ``drain_sec
 from __future__ import annotations
 
 import asyncio
+import gc
 import logging
 import signal
 import sys
@@ -92,6 +93,7 @@ class Service:
         t0 = time.perf_counter()
         await engine.warm_up(DEMO_ID if DEMO_ID in ids else (ids[0] if ids else None))
         log.info("warm-up frame rendered in %.1f s", time.perf_counter() - t0)
+        gc.freeze()  # start-up objects (torch, the avatars) never become garbage: keep the collector off them
         await self.grpc.set_serving(True)
         log.info("ready: gRPC on port %d, HTTP on port %d", self.grpc_port, self.http_port)
 

@@ -9,6 +9,7 @@ inputs, thread-count and batch independence, sparse packing, BLENDSPLAT_SIMD and
 import dataclasses
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -910,3 +911,21 @@ def test_auto_picks_the_fastest_path_that_agrees_with_scalar(monkeypatch, caplog
         assert fastest in caplog.text and "disagrees" in caplog.text
     finally:
         native.verified_fastest_path.cache_clear()
+
+
+def test_to_rgba8_rounds_and_clamps_like_torch():
+    rgb = torch.rand(2, 5, 7, 3) * 1.4 - 0.2
+    alpha = torch.rand(2, 5, 7)
+    want = (torch.cat([rgb, alpha[..., None]], -1).clamp(0, 1) * 255 + 0.5).to(torch.uint8).numpy()
+    assert np.array_equal(native.to_rgba8(rgb, alpha), want)
+
+
+def test_local_synth_avatar_leaves_pairs_unstored():
+    dense = native.NativeAvatar(synth_avatar(gaussians=2000, blendshapes=6, seed=4))
+    local_avatar = synth_avatar(gaussians=2000, blendshapes=6, seed=4, local=True)
+    local = native.NativeAvatar(local_avatar)
+    assert dense.stats.stored_fraction == 1.0
+    assert 0.0 < local.stats.stored_fraction < 0.7
+    back = local_avatar.neutral.means[:, 2] < -0.05
+    still = (local_avatar.deltas.means.abs().sum(-1) == 0).all(0)  # no blendshape moves them
+    assert float(still[back].float().mean()) > 0.5  # most of the back of the head

@@ -522,3 +522,22 @@ def test_error_json_shape(live_server):
     error = r.json()["error"]
     assert r.status_code == 404 and error["code"] == "NOT_FOUND" and error["field"] == "avatar_id"
     assert json.loads(json.dumps(error))
+
+
+def test_bench_stream_cli_reports_fps_latency_and_flat_memory(live_server, capsys):
+    from service.cli import main
+
+    assert main(["bench", "stream", "--target", live_server.grpc_target, "--avatar", "demo", "--streams", "2",
+                 "--seconds", "1", "--warmup", "0.2", "--fps", "20", "--size", "32", "--codec", "png", "--json",
+                 "--metrics-url", live_server.http_url + "/metrics"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert {"streams", "gaussians", "size", "codec", "fps_per_stream", "latency_ms", "dropped", "errors"} <= set(report)
+    assert report["streams"] == 2 and report["gaussians"] == 3000 and report["codec"] == "png"
+    assert report["errors"] == 0 and report["fps_per_stream"] > 0
+    assert report["latency_ms"]["p50"] <= report["latency_ms"]["p99"]
+    assert report["server_rss_mb"]["before"] > 0
+
+    assert main(["bench", "stream", "--target", live_server.grpc_target, "--avatar", "demo", "--seconds", "1",
+                 "--warmup", "0", "--fps", "100", "--size", "32", "--no-ack", "--json"]) == 0
+    stalled = json.loads(capsys.readouterr().out)
+    assert stalled["frames"] == 2 and stalled["dropped"] > 50  # max_in_flight frames, the rest dropped
