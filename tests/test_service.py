@@ -541,3 +541,46 @@ def test_bench_stream_cli_reports_fps_latency_and_flat_memory(live_server, capsy
                  "--warmup", "0", "--fps", "100", "--size", "32", "--no-ack", "--json"]) == 0
     stalled = json.loads(capsys.readouterr().out)
     assert stalled["frames"] == 2 and stalled["dropped"] > 50  # max_in_flight frames, the rest dropped
+
+
+def test_serve_command_starts_ready_and_exits_cleanly_on_sigterm(tmp_path):
+    """The real `blendsplat serve` process: demo avatar on first start, ready, then SIGTERM drains and exits 0."""
+    import os
+    import signal
+    import socket
+    import subprocess
+    import sys
+
+    ports = []
+    for _ in range(2):
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            ports.append(s.getsockname()[1])
+    env = dict(os.environ, BLENDSPLAT_DEMO_GAUSSIANS="2000", BLENDSPLAT_DEMO_BLENDSHAPES="4",
+               BLENDSPLAT_WARMUP_SIZE="64", BLENDSPLAT_DRAIN_SECONDS="3")
+    proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--grpc-port", str(ports[0]),
+                             "--http-port", str(ports[1]), "--data-dir", str(tmp_path), "--host", "127.0.0.1"],
+                            env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline:
+            try:
+                if httpx.get(f"http://127.0.0.1:{ports[1]}/readyz", timeout=2).status_code == 200:
+                    break
+            except httpx.TransportError:
+                pass
+            assert proc.poll() is None, proc.stdout.read()
+            time.sleep(0.2)
+        else:
+            pytest.fail("the service did not become ready")
+        assert (tmp_path / "bundles" / "demo.bundle").is_file()
+        with grpc.insecure_channel(f"127.0.0.1:{ports[0]}") as channel:
+            stream = GrpcStream(pb_grpc.RenderServiceStub(channel), avatar_id="demo", width=SIZE)
+            assert stream.next().header.gaussians == 2000
+            proc.send_signal(signal.SIGTERM)
+            assert stream.next().status.code == pb.UNAVAILABLE
+        assert proc.wait(timeout=20) == 0
+        assert "draining" in proc.stdout.read()
+    finally:
+        proc.kill()
+        proc.wait()
