@@ -373,7 +373,7 @@ def blend(avatar: Avatar, expression: Tensor) -> Gaussians:
     )
 
 
-def joint_transforms(avatar: Avatar, joint_rotations: Tensor) -> Tensor:
+def joint_transforms(avatar: Avatar, joint_rotations: Tensor) -> Tensor:  # or a FaceModel: any joint tree
     """Skinning transforms A_j of every joint: rest-pose world point -> posed world point.
 
     Forward kinematics through ``avatar.joint_parents`` from the rest ``joint_positions`` J:

@@ -27,3 +27,11 @@ class FrameError(BlendsplatError):
 
 class ShapeError(BlendsplatError):
     """A tensor argument has the wrong shape, dtype or non-finite values."""
+
+
+class FaceModelError(BlendsplatError):
+    """A face-model file or its evaluation inputs are invalid (``field`` names the offending array or key)."""
+
+
+class DatasetError(BlendsplatError):
+    """A tracked-video dataset is malformed: missing or unreadable frames, mismatched counts, bad tracking."""
