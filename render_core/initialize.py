@@ -1,0 +1,194 @@
+"""An animatable avatar straight from a face model (METHOD.md section 3, computed per Gaussian, no grid).
+
+- Positions: blue-noise samples of the neutral mesh (area-weighted candidates thinned on a grid whose cell is
+  sized for the requested count, so no two samples share a cell; then trimmed to exactly N). This approximates
+  Poisson-disk sampling (close pairs are rarer than with uniform samples) without its minimum-distance guarantee.
+- Each Gaussian knows its triangle and barycentric coordinates: LBS weights, pose correctives and eyelid offsets
+  are the barycentric blend of the triangle's vertex values.
+- Expression deltas: for each blendshape k, the triangle's deformation gradient from M0 to M_k (a fourth vertex
+  along the scaled normal, as in deformation transfer) and its rotation (polar decomposition). The position
+  delta is the surface point's own displacement; the rotation delta rotates the Gaussian (dq = q(R) q0 - q0);
+  the SH delta rotates its colour (dSH = rot(SH) - SH). Scale and opacity start without deltas. Triangles a
+  blendshape does not move give exactly zero deltas, so those pairs are never stored by the native backend.
+- Rest properties as in 3DGS, but flattened on the surface: tangent-aligned discs sized to the sample spacing,
+  thin along the normal; opacity 0.1 for training (``opacity``), colour from ``albedo`` (or a skin tone).
+- Mouth interior: two dark billboards behind the lips, the upper one on the skull joint, the lower on the jaw.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import torch
+from torch import Tensor
+
+from .avatar import Avatar, Gaussians, sh_coeff_count
+from .camera import front_camera
+from .facemodel import FaceModel
+from .rotation import matrix_to_quat, quat_multiply
+from .sh import rotate_sh
+
+SKIN = (0.80, 0.62, 0.52)
+MOUTH = (0.12, 0.05, 0.05)
+
+
+def _sample_surface(vertices: Tensor, faces: Tensor, n: int, g: torch.Generator) -> tuple[Tensor, Tensor]:
+    """Exactly ``n`` well-spaced points on the mesh: (triangle index [n], barycentric [n, 3])."""
+    tri = vertices[faces]  # [F, 3, 3]
+    area = 0.5 * torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]).norm(dim=1)
+    total = float(area.sum())
+    m = 6 * n
+    t = torch.multinomial(area, m, replacement=True, generator=g)
+    u, v = torch.rand(m, generator=g), torch.rand(m, generator=g)
+    su = u.sqrt()
+    bary = torch.stack([1 - su, su * (1 - v), su * v], 1)
+    x = (tri[t] * bary[..., None]).sum(1)
+    # Thin: one candidate per grid cell, the cell sized so that about n cells are occupied.
+    cell = math.sqrt(total / n) * 0.75
+    for _ in range(30):
+        keys = torch.floor(x / cell).long()
+        keys = (keys[:, 0] * 73856093) ^ (keys[:, 1] * 19349663) ^ (keys[:, 2] * 83492791)
+        _, first = torch.unique(keys, return_inverse=True)
+        winner = torch.full((int(first.max()) + 1,), m, dtype=torch.long).scatter_reduce(
+            0, first, torch.arange(m), reduce="amin")
+        if len(winner) >= n:
+            break
+        cell *= 0.9
+    chosen = winner[torch.randperm(len(winner), generator=g)[:n]]
+    return t[chosen], bary[chosen]
+
+
+def _tangent_frames(tri: Tensor) -> tuple[Tensor, Tensor]:
+    """Per triangle: rotation [F, 3, 3] with columns (edge, bitangent, normal) and the unit normal."""
+    e1 = tri[:, 1] - tri[:, 0]
+    n = torch.nn.functional.normalize(torch.linalg.cross(e1, tri[:, 2] - tri[:, 0]), dim=1)
+    t = torch.nn.functional.normalize(e1, dim=1)
+    b = torch.linalg.cross(n, t)
+    return torch.stack([t, b, n], dim=2), n
+
+
+def _deformation_rotations(rest: Tensor, posed: Tensor) -> Tensor:
+    """Rotation part of each triangle's deformation gradient rest -> posed ([F, 3, 3] each side)."""
+
+    def frame(tri: Tensor) -> Tensor:
+        e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+        nrm = torch.linalg.cross(e1, e2)
+        e3 = nrm / nrm.norm(dim=1, keepdim=True).clamp_min(1e-20).sqrt()
+        return torch.stack([e1, e2, e3], dim=2)
+
+    f = frame(posed) @ torch.linalg.inv(frame(rest))
+    u, _, vh = torch.linalg.svd(f)
+    d = torch.sign(torch.linalg.det(u @ vh))
+    u = torch.cat([u[..., :2], u[..., 2:] * d[:, None, None]], dim=2)
+    return u @ vh
+
+
+def init_avatar(
+    model: FaceModel,
+    gaussians: int = 50_000,
+    mouth: int = 4_000,
+    sh_degree: int = 3,
+    opacity: float = 0.1,
+    albedo: Callable[[Tensor], Tensor] | None = None,
+    seed: int = 0,
+) -> Avatar:
+    """A Gaussian blendshape avatar initialised from ``model`` (every blendshape and joint of the model).
+
+    ``albedo`` maps rest positions [N, 3] to linear RGB [N, 3] (default: a uniform skin tone).
+    """
+    if gaussians < 1 or mouth < 2:
+        raise ValueError("need at least one face Gaussian and two mouth Gaussians")
+    g = torch.Generator().manual_seed(seed)
+    verts, faces = model.template.double(), model.faces
+    tri_idx, bary = _sample_surface(verts, faces, gaussians, g)
+    corners = faces[tri_idx]  # [N, 3]
+
+    def interp(values: Tensor) -> Tensor:  # [..., V, C] -> [..., N, C]
+        return (values[..., corners, :] * bary[..., None].to(values.dtype)).sum(-2)
+
+    x = interp(verts)
+    frames, _ = _tangent_frames(verts[faces])
+    q0 = matrix_to_quat(frames[tri_idx].float())
+    area = 0.5 * torch.linalg.cross(verts[faces][:, 1] - verts[faces][:, 0],
+                                    verts[faces][:, 2] - verts[faces][:, 0]).norm(dim=1)
+    spacing = math.sqrt(float(area.sum()) / gaussians)
+    c = sh_coeff_count(sh_degree)
+    sh = torch.zeros(gaussians, c, 3)
+    rgb = albedo(x.float()) if albedo is not None else torch.tensor(SKIN).expand(gaussians, 3)
+    sh[:, 0] = (rgb.clamp(0, 1) - 0.5) / 0.28209479177387814
+    log_scales = torch.log(torch.tensor([spacing, spacing, 0.2 * spacing])).expand(gaussians, 3).clone()
+    logit = math.log(opacity / (1 - opacity))
+    neutral = Gaussians(x.float(), q0, log_scales, torch.full((gaussians,), logit), sh)
+
+    # Expression deltas through each triangle's deformation (rotation part) and the surface point's motion.
+    k = model.num_expressions
+    d_means = torch.zeros(k, gaussians, 3)
+    d_quats = torch.zeros(k, gaussians, 4)
+    d_sh = torch.zeros(k, gaussians, c, 3)
+    rest_tri = verts[faces]
+    for i in range(k):
+        disp = model.expression_basis[i].double()
+        moved_tri = (disp[faces].abs().amax(dim=(1, 2)) > 0)[tri_idx]  # Gaussians on triangles this target moves
+        if not bool(moved_tri.any()):
+            continue
+        rot = _deformation_rotations(rest_tri, (verts + disp)[faces])[tri_idx].float()  # [N, 3, 3]
+        d_means[i] = interp(disp).float() * moved_tri[:, None]
+        qk = quat_multiply(matrix_to_quat(rot), q0)
+        qk = torch.where((qk * q0).sum(-1, keepdim=True) < 0, -qk, qk)  # the same hemisphere as q0
+        d_quats[i] = (qk - q0) * moved_tri[:, None]
+        if c > 1 and bool(sh[:, 1:].any()):  # a rotation maps each band onto itself: zero bands stay zero
+            d_sh[i] = (rotate_sh(sh, rot) - sh) * moved_tri[:, None, None]
+    deltas = Gaussians(d_means, d_quats, torch.zeros(k, gaussians, 3), torch.zeros(k, gaussians), d_sh)
+
+    pose_correctives = interp(model.pose_correctives.double()).float() if model.pose_correctives is not None \
+        else None
+    eyelids = interp(model.eyelid_basis.double()).float() if model.eyelid_basis is not None else None
+    lbs = interp(model.lbs_weights.double()).float()
+    lbs = lbs / lbs.sum(1, keepdim=True)
+
+    mouth_g, group = _mouth_billboards(model, mouth, sh_degree, g)
+    avatar = Avatar(
+        neutral=neutral, deltas=deltas, lbs_weights=lbs, joint_positions=model.joint_positions.float(),
+        joint_names=list(model.joint_names), joint_parents=list(model.joint_parents),
+        expression_names=list(model.expression_names), mouth=mouth_g, mouth_group=group,
+        mouth_joint_names=(model.skull_joint, "jaw"), pose_correctives=pose_correctives, eyelid_offsets=eyelids,
+        sh_degree=sh_degree, face_model=model.name, default_camera=_framing(x.float()).to_dict(),
+        provenance={"generator": "blendsplat bundle init", "face_model": model.name, "seed": seed,
+                    "face_model_licence": model.licence},
+    )
+    avatar.validate()
+    return avatar
+
+
+def _mouth_billboards(model: FaceModel, m: int, sh_degree: int, g: torch.Generator) -> tuple[Gaussians, Tensor]:
+    """Two dark 4 x 1.5 cm billboards facing forward behind the lips: upper (skull joint) and lower (jaw)."""
+    t = model.template
+    front = t[:, 2] > t[:, 2].max() - 0.03
+    jaw = model.joint_positions[model.joint_names.index("jaw")]
+    lips = front & ((t[:, 1] - jaw[1]).abs() < 0.03) & (t[:, 0].abs() < 0.02)
+    centre = t[lips].mean(0) if bool(lips.any()) else t.mean(0)
+    centre = centre - torch.tensor([0.0, 0.0, 0.012])
+    half = m // 2
+    out_x, groups = [], []
+    for grp, dy in ((0, 0.0075), (1, -0.0075)):
+        count = half if grp == 0 else m - half
+        uv = torch.rand(count, 2, generator=g) * torch.tensor([0.04, 0.015]) - torch.tensor([0.02, 0.0075])
+        out_x.append(centre + torch.stack([uv[:, 0], uv[:, 1] + dy, torch.zeros(count)], 1))
+        groups.append(torch.full((count,), grp, dtype=torch.long))
+    x = torch.cat(out_x)
+    c = sh_coeff_count(sh_degree)
+    sh = torch.zeros(m, c, 3)
+    sh[:, 0] = (torch.tensor(MOUTH) - 0.5) / 0.28209479177387814
+    s = math.sqrt(0.04 * 0.015 * 2 / m)
+    mouth = Gaussians(x, torch.tensor([1.0, 0, 0, 0]).expand(m, 4).clone(),
+                      torch.log(torch.tensor([s, s, 0.3 * s])).expand(m, 3).clone(), torch.full((m,), 2.0), sh)
+    return mouth, torch.cat(groups)
+
+
+def _framing(x: Tensor):
+    """A front camera at 512 x 512, looking at the origin, far enough for the whole model to fit with a margin."""
+    extent = float(x.abs().amax(0)[:2].max())  # half the view needed, from the origin
+    focal = float(front_camera(512, 512).K[0, 0, 0])
+    return front_camera(512, 512, distance=focal * extent / (0.85 * 256) + float(x[:, 2].max()))
+
