@@ -187,8 +187,53 @@ def _mouth_billboards(model: FaceModel, m: int, sh_degree: int, g: torch.Generat
 
 
 def _framing(x: Tensor):
-    """A front camera at 512 x 512, looking at the origin, far enough for the whole model to fit with a margin."""
-    extent = float(x.abs().amax(0)[:2].max())  # half the view needed, from the origin
+    """A front camera at 512 x 512 looking at the origin (the head's centre), the head filling most of the view
+    (the neck below the chin may leave it)."""
+    extent = float(x[:, 0].abs().max()) * 1.25  # the head's half width, plus room for the head's height
     focal = float(front_camera(512, 512).K[0, 0, 0])
     return front_camera(512, 512, distance=focal * extent / (0.85 * 256) + float(x[:, 2].max()))
 
+
+
+def demo_albedo(model: FaceModel) -> Callable[[Tensor], Tensor]:
+    """Colours for an untrained demo avatar: skin with redder lips, dark brows, eyes with irises, white teeth and
+    a pink tongue, lit once from the upper left (baked), so that expressions read without training."""
+    t = model.template
+    tri = t[model.faces]
+    fn = torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    vn = torch.zeros_like(t).index_add_(0, model.faces.flatten(), fn.repeat_interleave(3, 0))
+    vn = torch.nn.functional.normalize(vn, dim=1)
+    colour = torch.tensor(SKIN).expand(len(t), 3).clone()
+    names = model.expression_names
+    motion = {n: model.expression_basis[names.index(n)].norm(dim=1) for n in names}
+
+    def strongest(*targets: str) -> Tensor:
+        m = torch.stack([motion[n] for n in targets if n in motion]).amax(0) if any(n in motion for n in targets) \
+            else torch.zeros(len(t))
+        return m > 0.6 * float(m.max()) if float(m.max()) > 0 else m > 0
+
+    front = t[:, 2] > 0
+    lips = strongest("mouthRollLower", "mouthRollUpper") & front & (t[:, 0].abs() < 0.028)
+    colour[lips] = torch.tensor([0.72, 0.38, 0.38])
+    brows = strongest("browInnerUp", "browOuterUpLeft", "browOuterUpRight") & front
+    colour[brows & (t[:, 1] > float(model.joint_positions[4:, 1].max()) + 0.012)] = torch.tensor([0.25, 0.18, 0.14])
+    groups = model.vertex_groups
+    for side, j in (("eyeball_l", "eye_l"), ("eyeball_r", "eye_r")):
+        if side in groups and j in model.joint_names:
+            idx = groups[side]
+            d = torch.nn.functional.normalize(t[idx] - model.joint_positions[model.joint_names.index(j)], dim=1)
+            colour[idx] = torch.where((d[:, 2] > 0.9)[:, None], torch.tensor([0.08, 0.06, 0.05]),
+                                      torch.where((d[:, 2] > 0.75)[:, None], torch.tensor([0.25, 0.35, 0.45]),
+                                                  torch.tensor([0.92, 0.9, 0.88])))
+    for name, rgb in (("teeth_upper", (0.93, 0.92, 0.86)), ("teeth_lower", (0.93, 0.92, 0.86)),
+                      ("tongue", (0.75, 0.35, 0.38))):
+        if name in groups:
+            colour[groups[name]] = torch.tensor(rgb)
+    light = torch.nn.functional.normalize(torch.tensor([0.4, 0.5, 0.75]), dim=0)
+    lit = colour * (0.45 + 0.65 * (vn @ light).clamp_min(0))[:, None]
+
+    def albedo(x: Tensor) -> Tensor:
+        return lit[torch.cdist(x, t).argmin(1)] if len(x) <= 8192 else torch.cat(
+            [albedo(chunk) for chunk in x.split(8192)])
+
+    return albedo

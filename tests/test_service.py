@@ -556,7 +556,7 @@ def test_serve_command_starts_ready_and_exits_cleanly_on_sigterm(tmp_path):
         with socket.socket() as s:
             s.bind(("127.0.0.1", 0))
             ports.append(s.getsockname()[1])
-    env = dict(os.environ, BLENDSPLAT_DEMO_GAUSSIANS="2000", BLENDSPLAT_DEMO_BLENDSHAPES="4",
+    env = dict(os.environ, BLENDSPLAT_DEMO_GAUSSIANS="2000", BLENDSPLAT_DEMO_AVATAR="open-head",
                BLENDSPLAT_WARMUP_SIZE="64", BLENDSPLAT_DRAIN_SECONDS="3")
     proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--grpc-port", str(ports[0]),
                              "--http-port", str(ports[1]), "--data-dir", str(tmp_path), "--host", "127.0.0.1"],
@@ -576,7 +576,8 @@ def test_serve_command_starts_ready_and_exits_cleanly_on_sigterm(tmp_path):
         assert (tmp_path / "bundles" / "demo.bundle").is_file()
         with grpc.insecure_channel(f"127.0.0.1:{ports[0]}") as channel:
             stream = GrpcStream(pb_grpc.RenderServiceStub(channel), avatar_id="demo", width=SIZE)
-            assert stream.next().header.gaussians == 2000
+            header = stream.next().header
+            assert header.gaussians == 2000 and "jawOpen" in header.expression_names  # the open head's
             proc.send_signal(signal.SIGTERM)
             assert stream.next().status.code == pb.UNAVAILABLE
         assert proc.wait(timeout=20) == 0
