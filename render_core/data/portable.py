@@ -573,7 +573,7 @@ def _load_manifest(root: Path) -> tuple[dict | None, list[Problem]]:
         return None, [(MANIFEST, f"{size} bytes exceeds the limit of {MAX_MANIFEST_BYTES}")]
     try:
         manifest = json.loads(path.read_bytes().decode("utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as e:
+    except (ValueError, RecursionError) as e:  # UnicodeDecodeError, JSONDecodeError, an over-long integer
         return None, [(MANIFEST, f"not valid UTF-8 JSON: {_oneline(str(e))}")]
     problems = _manifest_problems(manifest)
     return (manifest if isinstance(manifest, dict) else None), problems
@@ -586,10 +586,16 @@ def _load_tracking_arrays(root: Path) -> tuple[dict[str, np.ndarray], list[Probl
     why = _regular_file(path, root)
     if why:
         return {}, [(TRACKING, why)]
+    size = path.stat().st_size
+    if size > MAX_TRACKING_BYTES:
+        return {}, [(TRACKING, f"{size} bytes exceeds the limit of {MAX_TRACKING_BYTES}")]
     out: list[Problem] = []
     try:
         with zipfile.ZipFile(path) as zf:
             infos = zf.infolist()
+            if len(infos) > 4 * len(TRACKING_ARRAYS):
+                return {}, [(TRACKING, f"holds {len(infos)} members; version {VERSION} defines "
+                                       f"{len(TRACKING_ARRAYS)} arrays")]
             total = sum(i.file_size for i in infos)
             if total > MAX_TRACKING_BYTES:
                 return {}, [(TRACKING, f"{total} bytes uncompressed exceeds the limit of {MAX_TRACKING_BYTES}")]
@@ -627,7 +633,7 @@ def _load_tracking_arrays(root: Path) -> tuple[dict[str, np.ndarray], list[Probl
                                      f"{info.file_size} bytes"))
                     continue
                 present.append(key)
-    except (zipfile.BadZipFile, zipfile.LargeZipFile, OSError, EOFError, ValueError) as e:
+    except Exception as e:  # BadZipFile, OSError, EOFError, NotImplementedError (compression), ...
         return {}, out + [(TRACKING, f"not a readable .npz (zip) file: {_oneline(str(e))}")]
     arrays: dict[str, np.ndarray] = {}
     try:
@@ -750,6 +756,8 @@ def _inspect(root: Path) -> tuple[dict | None, Tracking | None, list[Problem]]:
     reported = {f for f, _ in problems}
     if manifest is None:  # its values are unknown, not wrong
         reported |= {"face_model", "width", "height", "fps"}
+    if not arrays and TRACKING in reported:  # no array could be read: do not list each as wrong
+        reported |= {*TRACKING_ARRAYS, "frames"}
     problems += [p for p in _tracking_problems(tracking) if p[0] not in reported]
     if manifest is not None and _is_int(manifest.get("frames")):
         n = tracking.frames
@@ -937,3 +945,29 @@ def write_dataset(out_dir: str | os.PathLike, frames: Iterable[np.ndarray], mask
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return out_dir
+
+
+# ---------------------------------------------------------------------------------------------------- commands
+def run_validate(directory: str | os.PathLike, *, as_json: bool = False) -> int:
+    """``blendsplat data validate DIR``: print every problem (one ``field or file: message`` line each, or one JSON
+    object with ``--json``) to stdout; exit status 1 if there is any, else 0."""
+    import sys
+
+    problems = validate_dataset(directory)
+    summary: dict = {"path": str(directory), "valid": not problems, "problems": problems}
+    if not problems:
+        tr = read_dataset(directory).tracking
+        summary.update(format=FORMAT, version=VERSION, frames=tr.frames, width=tr.width, height=tr.height,
+                       fps=tr.fps, face_model=tr.face_model, expressions=len(tr.expression_names),
+                       joints=len(tr.joint_names), train=len(tr.train), test=len(tr.test))
+    if as_json:
+        sys.stdout.write(json.dumps(summary, indent=2) + "\n")
+    elif problems:
+        sys.stdout.write("".join(f"{p}\n" for p in problems))
+        print(f"{directory}: {len(problems)} problem{'s' if len(problems) > 1 else ''}", file=sys.stderr)
+    else:
+        sys.stdout.write(f"{directory}: valid {FORMAT} v{VERSION}, {summary['frames']} frames of "
+                         f"{summary['width']}x{summary['height']} at {summary['fps']:g} fps, face model "
+                         f"{summary['face_model']!r}, train {summary['train']} / test {summary['test']}\n")
+    sys.stdout.flush()
+    return 1 if problems else 0
