@@ -747,7 +747,8 @@ class Dataset:
 def _inspect(root: Path) -> tuple[dict | None, Tracking | None, list[Problem]]:
     """Manifest + tracking checks (no image decoding)."""
     if not root.is_dir():
-        return None, None, [(str(root), "not a dataset folder (no such directory)")]
+        return None, None, [(str(root), "not a dataset folder (no such directory)" if not root.exists()
+                             else "not a dataset folder (not a directory)")]
     manifest, problems = _load_manifest(root)
     arrays, tracking_problems = _load_tracking_arrays(root)
     problems += tracking_problems
