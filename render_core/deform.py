@@ -392,10 +392,11 @@ def joint_transforms(avatar: Avatar, joint_rotations: Tensor) -> Tensor:  # or a
     j = avatar.num_joints
     if r.dim() != 4 or r.shape[1:] != (j, 3, 3):
         raise ShapeError(f"expected [B, {j}, 3, 3], got {list(r.shape)}", field="joint_rotations")
-    pos = avatar.joint_positions.to(device=r.device, dtype=r.dtype)  # [J, 3]
+    pos = avatar.joint_positions.to(device=r.device, dtype=r.dtype)  # [J, 3], or [B, J, 3] per frame
+    pos = pos[None] if pos.dim() == 2 else pos
     eye = torch.eye(3, dtype=r.dtype, device=r.device)
     # Local transforms about each joint: [R_j | (I - R_j) J_j].
-    local_t = ((eye - r) @ pos[None, :, :, None]).squeeze(-1)  # [B, J, 3]
+    local_t = ((eye - r) @ pos[..., None]).squeeze(-1)  # [B, J, 3]
     rots: list[Tensor] = []
     trans: list[Tensor] = []
     for i, parent in enumerate(avatar.joint_parents):

@@ -188,14 +188,14 @@ def rodrigues(aa: np.ndarray) -> np.ndarray:
     return np.eye(3) + np.sin(theta) * kx + (1 - np.cos(theta)) * kx @ kx
 
 
-def flame_numpy(a: dict, s0: int, beta, psi, rots, expression_in_joints: bool = False):
+def flame_numpy(a: dict, s0: int, beta, psi, rots):
     """One FLAME frame: v_shaped = T + S beta; J = J_reg v_shaped; v_posed = v_shaped + E psi + P feats with
     feats = (R_j - I) of joints 1..4 raveled; G_k = G_parent [R_k | J_k - J_parent]; A_k = G_k [I | -J_k];
-    v = sum_k w_k A_k v_posed. (FLAME itself regresses J after adding E psi: ``expression_in_joints``.)"""
+    v = sum_k w_k A_k v_posed, with J regressed after adding E psi, as FLAME does."""
     shapedirs = a["shapedirs"]
     v_shaped = a["v_template"] + shapedirs[:, :, : len(beta)] @ beta
     exp = shapedirs[:, :, s0 : s0 + len(psi)] @ psi
-    joints = a["J_regressor"] @ (v_shaped + exp if expression_in_joints else v_shaped)
+    joints = a["J_regressor"] @ (v_shaped + exp)
     feats = np.concatenate([(rots[j] - np.eye(3)).ravel() for j in range(1, 5)])
     v_posed = v_shaped + exp + a["posedirs"] @ feats
     g = []
@@ -320,16 +320,13 @@ def test_other_posedirs_layouts_are_caught(tmp_path, no_libraries):
         assert np.abs(got - want).max() > 1e-3
 
 
-@pytest.mark.xfail(strict=True, reason="FaceModel.evaluate regresses the joints from T + S beta; FLAME (chumpy "
-                   "original, FLAME_PyTorch, DECA, metrical-tracker) regresses them from T + S beta + E psi, so its "
-                   "jaw, neck and eye pivots move with the expression")
 def test_evaluate_regresses_joints_after_expression_like_flame(tmp_path, no_libraries):
     arrays = synthetic()
     model = load_flame(write(tmp_path, pickle_flame(arrays)), n_expression=6, n_shape=8, shape_components=8)
     rng = np.random.default_rng(3)
     beta = rng.normal(0, 1.0, 8)
     psi, rots = random_frames(rng, 1, 6)
-    want = flame_numpy(arrays, 8, beta, psi[0], rots[0], expression_in_joints=True)[0]
+    want = flame_numpy(arrays, 8, beta, psi[0], rots[0])[0]
     assert np.abs(evaluate(model, psi, rots, beta)[0][0] - want).max() < 1e-5
 
 

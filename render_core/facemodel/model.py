@@ -106,9 +106,9 @@ class FaceModel:
             if idx.dim() != 1 or (idx.numel() and (int(idx.min()) < 0 or int(idx.max()) >= v)):
                 raise FaceModelError(f"expected a list of vertex indices in [0, {v})", field=f"vertex_groups.{name}")
 
-    def shaped(self, shape: Tensor | None) -> tuple[Tensor, Tensor]:
+    def shaped(self, shape: Tensor | None, dtype: torch.dtype | None = None) -> tuple[Tensor, Tensor]:
         """Template and rest joint positions of an identity ``shape`` ([S'] coefficients, S' <= S; None: mean)."""
-        template = self.template
+        template = self.template.to(dtype or self.template.dtype)
         if shape is not None and shape.numel():
             s = shape.to(template.dtype).flatten()
             if self.shape_basis is None or s.numel() > self.num_shape:
@@ -128,6 +128,8 @@ class FaceModel:
     ) -> tuple[Tensor, Tensor]:
         """Posed vertices [B, V, 3] and the joints' skinning transforms [B, J, 3, 4] (rest -> posed).
 
+        With a joint regressor (FLAME) the joints are regressed from the shaped mesh after the expression, per
+        frame; otherwise they stay at ``joint_positions``.
         Rotations are relative to the parent joint, in the parent's rest frame aligned with the world axes
         (FLAME's convention); identity everywhere is the rest pose.
         """
@@ -139,8 +141,10 @@ class FaceModel:
             raise FaceModelError(f"expected [B={b}, {self.num_joints}, 3, 3], got {list(joint_rotations.shape)}",
                                  field="joint_rotations")
         dtype = expression.dtype
-        template, joints = self.shaped(shape)
-        v = template.to(dtype)[None] + torch.einsum("bk,kvc->bvc", expression, self.expression_basis.to(dtype))
+        template, joints = self.shaped(shape, dtype)
+        v = template[None] + torch.einsum("bk,kvc->bvc", expression, self.expression_basis.to(dtype))
+        if self.joint_regressor is not None:  # FLAME regresses the joints after the expression: [B, J, 3]
+            joints = torch.einsum("jv,bvc->bjc", self.joint_regressor.to(dtype), v)
         if self.pose_correctives is not None:
             v = v + torch.einsum("bp,pvc->bvc", pose_features(joint_rotations.to(dtype)),
                                  self.pose_correctives.to(dtype))
