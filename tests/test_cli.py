@@ -114,3 +114,28 @@ def test_console_script_prints_only_json_on_stdout(bundle):
     proc = subprocess.run([sys.executable, "-m", "render_core.cli", "bundle", "inspect", str(bundle), "--json"],
                           capture_output=True, text=True, check=True)
     assert json.loads(proc.stdout)["schema_version"] >= 1
+
+
+def test_data_and_facemodel_commands(tmp_path, capsys):
+    import numpy as np
+
+    from render_core.data import write_dataset
+    from service.cli import main
+    from tests.test_data import make_masks, make_tracking, smooth_frames
+    from tests.test_flame import pickle_flame, synthetic, write
+
+    ds = write_dataset(tmp_path / "ds", smooth_frames(), make_masks(), make_tracking())
+    assert main(["data", "validate", str(ds)]) == 0
+    capsys.readouterr()
+    first = sorted((ds / "frames").iterdir())[0]
+    first.write_bytes(first.read_bytes()[:100])  # a truncated frame
+    assert main(["data", "validate", str(ds), "--json"]) == 1
+    report = capsys.readouterr().out
+    assert first.name in report
+
+    pkl = write(tmp_path, pickle_flame(synthetic()))
+    out = tmp_path / "flame.fm"
+    with np.errstate(all="ignore"):
+        code = main(["facemodel", "import-flame", "--pkl", str(pkl), "--out", str(out), "--n-expression", "6"])
+    assert code == 1  # the synthetic file has 8 shape components, not FLAME's 300: refused with a clear error
+    assert "300 shape components" in capsys.readouterr().err
