@@ -39,6 +39,23 @@ def cmd_bundle_synth(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_bundle_init(args: argparse.Namespace) -> int:
+    from .bundle import write_bundle
+    from .facemodel import read_facemodel
+    from .facemodel.open_head import open_head
+    from .initialize import demo_albedo, init_avatar
+
+    model = read_facemodel(args.facemodel) if args.facemodel else open_head()
+    albedo = demo_albedo(model) if args.albedo == "demo" else None
+    avatar = init_avatar(model, gaussians=args.gaussians, mouth=args.mouth, sh_degree=args.sh_degree,
+                         opacity=args.opacity, albedo=albedo, seed=args.seed)
+    manifest = write_bundle(avatar, args.out, precision=args.precision)
+    log.info("wrote %s", args.out)
+    _emit({"path": str(args.out), "face_model": model.name, **manifest["counts"],
+           "precision": manifest["precision"], "digest": manifest["digest"]})
+    return 0
+
+
 def cmd_bundle_inspect(args: argparse.Namespace) -> int:
     from .bundle import read_manifest
 
@@ -194,6 +211,20 @@ def build_parser() -> argparse.ArgumentParser:
                    help="blendshapes with compact support, as a face model's (zero pairs are not stored); "
                         "default: dense, every pair non-zero")
     s.set_defaults(fn=cmd_bundle_synth)
+    s = bsub.add_parser("init", help="an animatable avatar initialised on a face model (METHOD.md section 3): "
+                                     "the untrained starting point, in seconds")
+    s.add_argument("--facemodel", type=Path, default=None,
+                   help="a face-model file (default: the open head, built on first use under ./data)")
+    s.add_argument("--out", required=True, type=Path)
+    s.add_argument("--gaussians", type=int, default=50_000, help="face Gaussians")
+    s.add_argument("--mouth", type=int, default=4_000, help="mouth-interior Gaussians")
+    s.add_argument("--sh-degree", type=int, default=3, choices=range(4))
+    s.add_argument("--opacity", type=float, default=0.1, help="initial opacity (training: 0.1; a demo: 0.95)")
+    s.add_argument("--albedo", choices=("skin", "demo"), default="skin",
+                   help="skin: one tone (training starts there); demo: features and baked light, to look at")
+    s.add_argument("--precision", choices=("fp32", "fp16"), default="fp16")
+    s.add_argument("--seed", type=int, default=0)
+    s.set_defaults(fn=cmd_bundle_init)
     s = bsub.add_parser("inspect", help="print a bundle's manifest")
     s.add_argument("file", type=Path)
     s.add_argument("--json", action="store_true", help="the whole manifest as JSON")

@@ -139,3 +139,20 @@ def test_data_and_facemodel_commands(tmp_path, capsys):
         code = main(["facemodel", "import-flame", "--pkl", str(pkl), "--out", str(out), "--n-expression", "6"])
     assert code == 1  # the synthetic file has 8 shape components, not FLAME's 300: refused with a clear error
     assert "300 shape components" in capsys.readouterr().err
+
+
+def test_bundle_init_from_a_face_model_file(tmp_path, head, capsys):
+    import json
+
+    from render_core.bundle import read_bundle
+    from render_core.facemodel import write_facemodel
+    from service.cli import main
+
+    fm = write_facemodel(head, tmp_path / "head.facemodel")
+    out = tmp_path / "init.bundle"
+    assert main(["bundle", "init", "--facemodel", str(fm), "--out", str(out), "--gaussians", "800", "--mouth", "40",
+                 "--albedo", "demo", "--opacity", "0.9"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["face_model"] == head.name and report["gaussians"] == 800 and report["mouth"] == 40
+    avatar = read_bundle(out)
+    assert avatar.expression_names == head.expression_names and avatar.precision == "fp16"
