@@ -585,3 +585,51 @@ def test_serve_command_starts_ready_and_exits_cleanly_on_sigterm(tmp_path):
     finally:
         proc.kill()
         proc.wait()
+
+
+def test_avatar_cache_is_lru_under_its_budget_and_keeps_avatars_in_use(tmp_path):
+    import asyncio
+
+    from service.cache import AvatarCache
+    from service.errors import NotFound, ResourceExhausted
+    from service.metrics import Metrics
+    from service.store import BundleStore
+
+    store = BundleStore(tmp_path)
+    store.ensure()
+    for name in ("a", "b", "c"):
+        write_bundle(synth_avatar(gaussians=400, blendshapes=3, seed=ord(name)), store.path(name))
+
+    async def scenario():
+        probe = AvatarCache(store, 1 << 40, Metrics())
+        one = (await probe.load("a")).memory_bytes
+        cache = AvatarCache(store, int(2.5 * one), Metrics())  # room for two
+        a = await cache.acquire("a")  # in use: never evicted
+        await cache.load("b")
+        await cache.load("c")  # evicts b, the least recently used one not in use
+        assert cache.loaded_ids() == ["a", "c"]
+        again = await cache.load("a")
+        assert again is a and cache.metrics.cache_hits._value.get() == 1
+        cache.release(a)
+        await cache.load("b")  # evicts c: a was used more recently
+        assert cache.loaded_ids() == ["a", "b"]
+        both = [await cache.acquire(i) for i in cache.loaded_ids()]
+        missing = [i for i in ("a", "b", "c") if i not in cache.loaded_ids()][0]
+        try:
+            await cache.load(missing)
+            raise AssertionError("loaded past the budget with every avatar in use")
+        except ResourceExhausted as e:
+            assert "in use" in str(e)
+        for entry in both:
+            cache.release(entry)
+        try:
+            await cache.load("zzz")
+            raise AssertionError("unknown avatar loaded")
+        except NotFound:
+            pass
+        # Concurrent requests for one avatar share one load.
+        fresh = AvatarCache(store, 1 << 40, Metrics())
+        x, y = await asyncio.gather(fresh.load("c"), fresh.load("c"))
+        assert x is y and fresh.metrics.cache_misses._value.get() == 1
+
+    asyncio.run(scenario())
