@@ -294,3 +294,23 @@ def test_blur_bar_and_acceptance_run_with_the_open_head(open_head_model, tmp_pat
     assert summary["jaw"] == "coefficient" and summary["gaze"] == "coefficients"
     tr = read_dataset(tmp_path / "oh").tracking
     assert (tr.joint_rotations == 0).all() and tr.expression.shape == (12, 52) and tr.shape.shape == (0,)
+
+
+def test_blinks_drive_the_eyelid_basis_when_the_model_has_one(toy, tmp_path):
+    from dataclasses import replace
+
+    lids = torch.zeros(2, toy.num_vertices, 3)
+    lids[:, :10, 1] = -0.002
+    model = replace(toy, eyelid_basis=lids)
+    sc = make_script(model, 400, seed=3)
+    assert float(sc.eyelids.max()) > 0.9 and torch.equal(sc.eyelids[:, 0], sc.eyelids[:, 1])
+    synth_dataset(tmp_path / "lids", frames=8, size=32, seed=3, facemodel=model)
+    assert validate_dataset(tmp_path / "lids") == []
+
+
+def test_synth_dataset_reads_a_face_model_file(toy, tmp_path):
+    from render_core.facemodel import write_facemodel
+
+    path = write_facemodel(toy, tmp_path / "toy.facemodel")
+    summary = synth_dataset(tmp_path / "ds", frames=3, size=32, seed=0, facemodel=str(path))
+    assert summary["face_model"] == "toy-head" and validate_dataset(tmp_path / "ds") == []

@@ -4,23 +4,26 @@ The albedo is a function of the REST (canonical) surface position of a face mode
 skin whatever the expression or pose: the renderer interpolates :meth:`SkinAlbedo.vertex_attributes` (rest
 position and material weights per vertex) perspective-correctly and calls :class:`SkinAlbedo` per pixel. Layers:
 
-- base skin tone with smooth variation (value noise at 2-5 cm, redder cheeks and nose);
-- mottling at 1-10 mm (fBm) and pores (dark dots on a ~0.7 mm lattice);
-- freckles and two moles on the subject's LEFT cheek and temple only (seeded positions);
+- base skin tone with smooth variation (2-5 cm noise, redder cheeks and nose);
+- mottling at 1-8 mm and pores (dark dots where a 0.7 mm noise peaks; resolved from about 512 px up);
+- freckles: ~4000 round brown dots (1-2.5 mm) scattered on the skin, denser on the front of the face, patchy, and
+  denser on the subject's LEFT (+x) side; plus distinct marks on the LEFT side only: 30 darker spots and two moles
+  on the cheek, nose side and temple (seeded positions);
 - darker eyebrows: arched bands above the eyes, with hair strokes;
-- redder lips (an ellipse around the mouth with vertical lip lines) and a dark red mouth interior;
+- redder lips (an ellipse around the mouth with vertical lip lines); the mouth interior (skin near the mouth that
+  no front-ish view sees in the rest pose) dark red;
 - eyeball vertex groups (``eyeball_*``): off-white sclera, textured iris (limbal ring, radial fibres), black pupil,
   facing the rest +z axis; ``teeth*`` groups near-white; ``tongue`` pink.
 
-Landmarks come from the model: eye centres from the eyeball groups (else the ``eye_l``/``eye_r`` joints), the mouth
-from the displacement of the ``mouth*`` / ``jaw*`` expression bases (else a point one eye distance below the eyes
-on the front surface); sizes scale with the eye distance.
+Landmarks come from the model: eye centres from the eyeball groups (else the ``eye_l``/``eye_r`` joints, else a
+guess from the bounding box), the mouth from the displacement of the ``mouth*`` expression bases (else a point one
+eye distance below the eyes), snapped to the front surface; sizes scale with the eye distance.
 
-Anti-aliasing: every layer is prefiltered by the pixel footprint (metres per pixel, given per pixel): a noise
-octave whose lattice spacing is below about one pixel fades out and the Gaussian spots are widened by the pixel
-size (energy preserving), so a detail the camera cannot resolve does not flicker from frame to frame.
-
-Noise is hash-based value noise in torch (deterministic for a seed, no global RNG state).
+Noise is band-limited: sums of random sinusoids (:class:`SpectralNoise`, random Fourier features) and Gaussian dots
+looked up through a grid (:class:`DotField`), all seeded (no global RNG state). Anti-aliasing: every layer is
+prefiltered by the pixel footprint (metres per pixel, per pixel): each sinusoid is attenuated by a Gaussian of half
+a pixel and each dot widened by it (energy preserving), so a detail the camera cannot resolve fades instead of
+flickering from frame to frame.
 """
 
 from __future__ import annotations
@@ -31,13 +34,18 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from ..camera import Cameras, look_at
 from ..facemodel.model import FaceModel
+from ..meshraster import rasterize
 
 __all__ = ["ALBEDO_CHANNELS", "DotField", "FaceLandmarks", "SkinAlbedo", "SpectralNoise", "face_landmarks", "lambert"]
 
 ALBEDO_CHANNELS = 7  # rest position (3), eyeball / teeth / tongue / mouth-interior weights (4)
 LIGHT = (-0.35, 0.45, 0.82)  # towards the light, in the face model's frame (y up, face towards +z)
 AMBIENT, DIFFUSE = 0.32, 0.75
+PREFILTER = 0.5  # Gaussian prefilter sigma, in pixel footprints (about one pixel's box)
+FRECKLE_SPACING = 0.0038  # mean distance between freckle dots on the densest skin, metres
+FRECKLE_SIGMA = (0.00045, 0.0010)  # Gaussian radius range of a freckle dot, metres
 
 SKIN = (0.80, 0.59, 0.48)
 BROW = (0.20, 0.13, 0.09)
@@ -75,11 +83,8 @@ class SpectralNoise:
         self.amp = torch.cat(amps).float()  # [M]
         self.omega2 = (self.omega.double() ** 2).sum(-1).float()  # [M]
 
-    def __call__(self, p: Tensor, footprint: Tensor | None = None, normalise: bool = False) -> Tensor:
-        """Noise [N] (float32) at points p [N, 3] (metres); ``footprint`` [N]: pixel size in metres (None: none).
-
-        ``normalise``: divide by the prefilter's loss of standard deviation (so thresholds keep their meaning;
-        the caller fades the contrast of features smaller than a pixel)."""
+    def __call__(self, p: Tensor, footprint: Tensor | None = None) -> Tensor:
+        """Noise [N] (float32) at points p [N, 3] (metres); ``footprint`` [N]: pixel size in metres (None: none)."""
         if p.shape[0] == 0:
             return torch.zeros(0)
         keep = torch.ones(self.amp.shape[0], dtype=torch.bool)
@@ -94,20 +99,7 @@ class SpectralNoise:
             return wave @ amp
         sigma2 = (PREFILTER * footprint.float()) ** 2
         atten = torch.exp(-0.5 * sigma2[:, None] * om2[None])
-        out = (wave * atten) @ amp
-        if normalise:
-            out = out / ((atten**2 @ amp**2) / float((self.amp**2).sum())).sqrt().clamp_min(0.05)
-        return out
-
-
-PREFILTER = 0.5  # Gaussian prefilter sigma, in pixel footprints (about one pixel's box)
-FRECKLE_SPACING = 0.0038  # mean distance between freckle dots on the densest skin, metres
-FRECKLE_SIGMA = (0.00045, 0.0010)  # Gaussian radius range of a freckle dot, metres
-
-
-def _fade(size: float, footprint: Tensor) -> Tensor:
-    """Contrast of a feature of ``size`` metres at a pixel footprint: 0 below 0.7 pixel, 1 above 1.6 pixels."""
-    return _smoothstep(0.7, 1.6, size / footprint.clamp_min(1e-9))
+        return (wave * atten) @ amp
 
 
 class DotField:
@@ -241,9 +233,6 @@ def face_landmarks(model: FaceModel) -> FaceLandmarks:
 
 def _front_visible(model: FaceModel, size: int = 192) -> Tensor:
     """[V] bool: vertices of triangles visible in the rest pose from five front-ish views (the mouth closed)."""
-    from ..camera import Cameras, look_at
-    from ..meshraster import rasterize
-
     t = model.template.float()
     lo, hi = t.min(0).values, t.max(0).values
     centre = (lo + hi) / 2
