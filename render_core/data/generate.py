@@ -5,9 +5,9 @@
 tracking holds exactly that:
 
 - Expressions: "actions" (a smile, a frown, raised brows, a pucker, talking, blinks, ...), each a fixed pattern of
-  ARKit-named coefficients scaled by a smooth envelope (raised ramps, a plateau); at most three actions overlap.
-  With a model lacking the ARKit names, actions are random disjoint subsets of one or two coefficients. Values are
-  clamped to [0, 1].
+  ARKit-named coefficients scaled by a smooth envelope (raised ramps, a plateau); a few at once (an action's window
+  overlaps at most three others; blinks come on top). With a model lacking the ARKit names, actions are random
+  disjoint subsets of one or two coefficients. Values are clamped to [0, 1].
 - Jaw: the ``jawOpen`` coefficient when the model has one (the open head; its jaw joint stays at rest, as
   METHOD.md section 11 has it), else the ``jaw`` joint, opening about +x (up to 0.3 rad).
 - Gaze: the eight ``eyeLook*`` coefficients when the model has them (they move the open head's eyeballs, and are
@@ -24,7 +24,7 @@ Train/test split: the last 15% of the frames (at least one) are the test set and
 
 - expressions: the actions come in "conflict pairs" (smile + raised brows, frown + talking, pucker + sneer, ...).
   In training the two actions of a pair never overlap (their envelopes have disjoint support); every test frame has
-  at least one pair both active at >= 40% of its amplitude, with amplitudes 0.85-1.0 (training: 0.45-0.85), so
+  at least one pair both at activation >= 0.4 (pairs cross-fade; amplitudes 0.85-1.0, training 0.45-0.85), so
   coefficient values also go a little beyond the training range;
 - head pose: training keeps (yaw / 25 deg, pitch / 12 deg) inside the L1 diamond |y| + |p| <= 1 (large yaw and large
   pitch never co-occur) and roll within +-4 deg; test poses move on the ring |y| + |p| in [1.12, 1.25] (corners
@@ -244,7 +244,7 @@ def make_script(model: FaceModel, frames: int, seed: int) -> Script:
         partners[b].add(a)
     act = torch.zeros(n, len(action_names), dtype=torch.float64)
 
-    # ---- training: events scheduled greedily; conflicting actions never overlap, at most 3 at once.
+    # ---- training: events scheduled greedily; conflicting actions never overlap; an event overlaps <= 3 others.
     events: list[tuple[str, int, int]] = []  # (action, start, end)
     pool = [a for a in action_names if a != "blink"]
     weights = torch.tensor([ACTION_WEIGHTS.get(a, 1.0) for a in pool], dtype=torch.float64)
