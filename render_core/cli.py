@@ -182,6 +182,16 @@ def cmd_data_validate(args: argparse.Namespace) -> int:
     return run_validate(args.dir, as_json=args.json)
 
 
+def cmd_data_synth(args: argparse.Namespace) -> int:
+    from .data.generate import synth_dataset
+
+    summary = synth_dataset(args.out, frames=args.frames, size=args.size, seed=args.seed, facemodel=args.facemodel)
+    log.info("wrote %d frames (%d train, %d test) to %s", summary["frames"], summary["train"], summary["test"],
+             args.out)
+    _emit(summary)
+    return 0
+
+
 def cmd_data_convert(args: argparse.Namespace) -> int:
     from .data import run_convert
 
@@ -256,6 +266,15 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("dir", type=Path)
     s.add_argument("--json", action="store_true")
     s.set_defaults(fn=cmd_data_validate)
+    s = dsub.add_parser("synth", help="render a synthetic tracked video of the open head (or --facemodel) with "
+                                      "exact masks and tracking, in the portable format; the last 15%% of the "
+                                      "frames (novel expressions and poses) are the test set")
+    s.add_argument("--out", required=True, type=Path)
+    s.add_argument("--frames", type=int, default=300)
+    s.add_argument("--size", type=int, default=256)
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--facemodel", type=Path, default=None, help="a face-model file (default: the open head)")
+    s.set_defaults(fn=cmd_data_synth)
     s = dsub.add_parser("convert", help="a metrical-tracker / INSTA folder (local, trusted data) -> the portable "
                                         "format")
     s.add_argument("src", type=Path)

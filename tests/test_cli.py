@@ -156,3 +156,19 @@ def test_bundle_init_from_a_face_model_file(tmp_path, head, capsys):
     assert report["face_model"] == head.name and report["gaussians"] == 800 and report["mouth"] == 40
     avatar = read_bundle(out)
     assert avatar.expression_names == head.expression_names and avatar.precision == "fp16"
+
+
+def test_data_synth_cli_writes_a_valid_dataset(tmp_path, head, capsys, monkeypatch):
+    import json
+
+    from render_core.data import validate_dataset
+    from render_core.facemodel import write_facemodel
+    from service.cli import main
+
+    fm = write_facemodel(head, tmp_path / "head.facemodel")
+    out = tmp_path / "ds"
+    assert main(["data", "synth", "--out", str(out), "--frames", "7", "--size", "48", "--seed", "2",
+                 "--facemodel", str(fm)]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["frames"] == 7 and summary["test"] >= 1 and summary["face_model"] == head.name
+    assert validate_dataset(out) == []
