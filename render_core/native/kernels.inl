@@ -466,17 +466,19 @@ static void raster_tile(const TileSplat* splats, int count, int tx, int ty, cons
                 const float dy = s.my - yc;
                 const F dx = V::set1(s.mx) - px;
                 const F q = V::fma(dx, V::fma(V::set1(s.ha), dx, V::set1(s.cb * dy)), V::set1(s.hc * dy * dy));
-                const F a = V::min(amax, vexp2<V>(V::set1(s.log2_opacity) - q));
-                const M ok = V::mand(live, V::mand(V::ge(q, zero), V::ge(a, amin)));
+                // Lanes that skip this Gaussian get alpha 0, so that T (1 - a) = T exactly and nothing is added:
+                // only the stop mask is needed to update T and the colour (fewer mask operations per Gaussian).
+                const F a_raw = V::min(amax, vexp2<V>(V::set1(s.log2_opacity) - q));
+                const M ok = V::ge_and(V::ge_and(live, q, zero), a_raw, amin);
+                const F a = V::zero_unless(ok, a_raw);
                 const F nt = T * (one - a);
-                const M stop = V::mand(ok, V::le(nt, tstop));
-                const M add = V::mandnot(stop, ok);
-                const F w = V::select(add, a * T, zero);
+                const M stop = V::le_and(ok, nt, tstop);
+                const F w = V::select(stop, zero, a * T);
                 Cr = V::fma(w, V::set1(s.r), Cr);
                 Cg = V::fma(w, V::set1(s.g), Cg);
                 Cb = V::fma(w, V::set1(s.b), Cb);
                 D = V::fma(w, V::set1(s.depth), D);
-                T = V::select(add, nt, T);
+                T = V::select(stop, T, nt);
                 live = V::mandnot(stop, live);
             }
         }

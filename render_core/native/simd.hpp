@@ -76,6 +76,9 @@ struct Scalar {
     static M mand(M a, M b) { return a && b; }
     static M mor(M a, M b) { return a || b; }
     static M mandnot(M a, M b) { return !a && b; }  // (not a) and b
+    static M ge_and(M m, F a, F b) { return m && a >= b; }  // m and (a >= b)
+    static M le_and(M m, F a, F b) { return m && a <= b; }
+    static F zero_unless(M m, F a) { return m ? a : 0.0f; }
     static bool any(M m) { return m; }
     static unsigned bits(M m) { return m ? 1u : 0u; }
     static F select(M m, F a, F b) { return m ? a : b; }
@@ -121,6 +124,9 @@ struct Avx2 {
     static M mand(M a, M b) { return {_mm256_and_ps(a.v, b.v)}; }
     static M mor(M a, M b) { return {_mm256_or_ps(a.v, b.v)}; }
     static M mandnot(M a, M b) { return {_mm256_andnot_ps(a.v, b.v)}; }
+    static M ge_and(M m, F a, F b) { return {_mm256_and_ps(m.v, _mm256_cmp_ps(a.v, b.v, _CMP_GE_OQ))}; }
+    static M le_and(M m, F a, F b) { return {_mm256_and_ps(m.v, _mm256_cmp_ps(a.v, b.v, _CMP_LE_OQ))}; }
+    static F zero_unless(M m, F a) { return _mm256_and_ps(m.v, a.v); }
     static bool any(M m) { return _mm256_movemask_ps(m.v) != 0; }
     static unsigned bits(M m) { return unsigned(_mm256_movemask_ps(m.v)); }
     static F select(M m, F a, F b) { return _mm256_blendv_ps(b.v, a.v, m.v); }
@@ -185,6 +191,10 @@ struct Avx512 {
     static M mand(M a, M b) { return {__mmask16(a.k & b.k)}; }
     static M mor(M a, M b) { return {__mmask16(a.k | b.k)}; }
     static M mandnot(M a, M b) { return {__mmask16(~a.k & b.k)}; }
+    // Compares under a write mask: the AND comes free with the compare (no separate mask instruction).
+    static M ge_and(M m, F a, F b) { return {_mm512_mask_cmp_ps_mask(m.k, a.v, b.v, _CMP_GE_OQ)}; }
+    static M le_and(M m, F a, F b) { return {_mm512_mask_cmp_ps_mask(m.k, a.v, b.v, _CMP_LE_OQ)}; }
+    static F zero_unless(M m, F a) { return _mm512_maskz_mov_ps(m.k, a.v); }
     static bool any(M m) { return m.k != 0; }
     static unsigned bits(M m) { return unsigned(m.k); }
     static F select(M m, F a, F b) { return _mm512_mask_blend_ps(m.k, b.v, a.v); }
