@@ -199,10 +199,7 @@ struct Avx512 {
     static unsigned bits(M m) { return unsigned(m.k); }
     static F select(M m, F a, F b) { return _mm512_mask_blend_ps(m.k, b.v, a.v); }
     static float hsum(F a) { return _mm512_reduce_add_ps(a.v); }
-    static F ldexp(F y, F n) {
-        return F(_mm512_castsi512_ps(_mm512_add_epi32(_mm512_castps_si512(y.v),
-                                                       _mm512_slli_epi32(_mm512_cvtps_epi32(n.v), 23))));
-    }
+    static F ldexp(F y, F n) { return _mm512_scalef_ps(y.v, n.v); }  // y 2^n in one instruction
     static F frexp(F x, F& e) {
         const __m512i bits = _mm512_castps_si512(x.v);
         e = _mm512_cvtepi32_ps(_mm512_sub_epi32(_mm512_srli_epi32(bits, 23), _mm512_set1_epi32(126)));
