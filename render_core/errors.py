@@ -12,6 +12,7 @@ class BlendsplatError(Exception):
 
     def __init__(self, message: str, *, field: str | None = None):
         self.field = field
+        self.detail = message  # without the field (for replies that carry the field separately)
         super().__init__(f"{field}: {message}" if field else message)
 
 

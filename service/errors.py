@@ -15,6 +15,7 @@ class ServiceError(Exception):
 
     def __init__(self, message: str, *, field: str | None = None):
         self.field = field
+        self.detail = message  # without the field (for replies that carry the field separately)
         super().__init__(f"{field}: {message}" if field else message)
 
 
@@ -45,11 +46,11 @@ _HTTP = {
 
 
 def to_status(exc: BaseException, frame_index: int = 0) -> pb.Status:
-    """Any exception as a wire status: typed errors keep their code and field; others are INTERNAL."""
-    if isinstance(exc, ServiceError):
-        return pb.Status(code=exc.code, message=str(exc), field=exc.field or "", frame_index=frame_index)
-    if isinstance(exc, BlendsplatError):  # bad frame parameters, shapes or bundles: the client's input
-        return pb.Status(code=pb.INVALID_ARGUMENT, message=str(exc), field=exc.field or "", frame_index=frame_index)
+    """Any exception as a wire status: typed errors keep their code and field (the message then leaves the field
+    out); others are INTERNAL."""
+    if isinstance(exc, ServiceError | BlendsplatError):
+        code = exc.code if isinstance(exc, ServiceError) else pb.INVALID_ARGUMENT  # render_core: the client's input
+        return pb.Status(code=code, message=exc.detail, field=exc.field or "", frame_index=frame_index)
     return pb.Status(code=pb.INTERNAL, message=f"internal error ({type(exc).__name__})", frame_index=frame_index)
 
 

@@ -28,7 +28,8 @@ async def _abort(context: grpc.aio.ServicerContext, exc: BaseException) -> None:
     status = to_status(exc)
     if status.code == pb.INTERNAL:
         log.exception("internal error", exc_info=exc)
-    await context.abort(grpc_code(status.code), status.message)
+    details = f"{status.field}: {status.message}" if status.field else status.message  # no field slot in gRPC
+    await context.abort(grpc_code(status.code), details)
 
 
 class RenderService(pb_grpc.RenderServiceServicer):
