@@ -10,3 +10,4 @@ using V = Avx2;
 }  // namespace bs
 
 #include "kernels.inl"
+#include "backward.inl"

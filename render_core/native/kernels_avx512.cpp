@@ -10,3 +10,4 @@ using V = Avx512;
 }  // namespace bs
 
 #include "kernels.inl"
+#include "backward.inl"

@@ -10,3 +10,4 @@ using V = Scalar;
 }  // namespace bs
 
 #include "kernels.inl"
+#include "backward.inl"
