@@ -191,8 +191,9 @@ class _Rasterize(torch.autograd.Function):
         g = [np.empty((b, n, 3), np.float32), np.empty((b, n, 4), np.float32), np.empty((b, n, 3), np.float32),
              np.empty((b, n), np.float32), np.empty((b, n, 3), np.float32)]
         g_bg = np.empty((b, 3), np.float32)
-        _native.rasterize_backward(ctx.handle, m32.numpy(), q32.numpy(), s32.numpy(), o32.numpy(), ctx.bg,
-                                   _np(grad_rgb), _np(grad_alpha), *g, g_bg, ctx.threads)
+        timings = _native.rasterize_backward(ctx.handle, m32.numpy(), q32.numpy(), s32.numpy(), o32.numpy(),
+                                             ctx.bg, _np(grad_rgb), _np(grad_alpha), *g, g_bg, ctx.threads)
+        ctx.backward_timings = dict(timings)
         grads = [torch.from_numpy(x).to(dt) for x, dt in zip(g, ctx.dtypes, strict=True)]
         grad_bg = None
         if ctx.bg_shape is not None and ctx.needs_input_grad[5]:
