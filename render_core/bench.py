@@ -205,6 +205,7 @@ def bench_raster_backward(gaussians: int = 10_000, size: int = 256, frames: int 
     report = {
         "benchmark": "raster_backward",
         "gaussians": avatar.num_gaussians,
+        "mouth_gaussians": avatar.num_mouth,
         "size": size,
         "batch": batch,
         "raster_mode": avatar.raster_mode,

@@ -204,6 +204,28 @@ def test_gradients_match_reference_where_alpha_is_clamped(mode):
     assert_gradients_match(got, want)
 
 
+@pytest.mark.parametrize("size", [(1, 1), (17, 33), (33, 17)], ids=["1x1", "17x33", "33x17"])
+def test_gradients_match_reference_at_odd_sizes(size):
+    """Images that are not whole tiles (partial tiles on the right and bottom; a single pixel)."""
+    w, h = size
+    args = random_scene(200, 2, seed=3)
+    cams = scene_cameras(w, h, 2.0 * max(w, h))
+    weights = loss_weights(2, h, w, seed=1)
+    ref, want = reference_grads(args, cams, BG2, "classic", weights)
+    assert float(ref.alpha.detach().max()) > 0.5
+    _, _, got = native_grads(args, cams, BG2, "classic", weights)
+    assert_gradients_match(got, want)
+
+
+def test_no_gaussians():
+    args = [t[:, :0].contiguous() for t in random_scene(10, 2, seed=3)]
+    weights = loss_weights(2, 20, 20, seed=0)
+    rgb, alpha, got = native_grads(args, scene_cameras(20, 20, 30.0), BG2, "classic", weights)
+    assert torch.equal(alpha, torch.zeros_like(alpha))
+    assert [tuple(t.shape) for t in got] == [(2, 0, 3), (2, 0, 4), (2, 0, 3), (2, 0), (2, 0, 3), (2, 3)]
+    assert torch.allclose(got[5], weights[0].sum((1, 2)), rtol=1e-5, atol=1e-4)
+
+
 # ------------------------------------------------------------------------------------------------ forward
 
 
