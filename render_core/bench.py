@@ -150,6 +150,82 @@ def bench_render(
     return report
 
 
+def _time_raster_step(raster, avatar: Avatar, cams: Cameras, frames: int, warmup: int, g: torch.Generator) -> dict:
+    """Median forward and backward ms of ``raster(means, quats, scales, opacities, colors, cams, bg, mode)`` ->
+    (rgb, alpha) on fresh posed splats each frame, for the loss sum(w rgb) + sum(v alpha) with random w, v."""
+    from .deform import deform, shade
+
+    fwd, bwd, last = [], [], {}
+    for i in range(warmup + frames):
+        splats = deform(avatar, random_frames(avatar, len(cams), g))
+        colors = shade(splats, cams.centres)
+        leaves = [t.detach().float().contiguous().requires_grad_(True)
+                  for t in (splats.means, splats.quats, splats.scales, splats.opacities, colors)]
+        bg = torch.rand(len(cams), 3, generator=g).requires_grad_(True)
+        w = torch.randn(len(cams), cams.height, cams.width, 3, generator=g)
+        v = torch.randn(len(cams), cams.height, cams.width, generator=g)
+        t0 = time.perf_counter()
+        rgb, alpha = raster(*leaves, cams, bg, avatar.raster_mode)
+        t1 = time.perf_counter()
+        ((rgb * w).sum() + (alpha * v).sum()).backward()
+        t2 = time.perf_counter()
+        if i >= warmup:
+            fwd.append((t1 - t0) * 1e3)
+            bwd.append((t2 - t1) * 1e3)
+            last = {"node": rgb.grad_fn, "alpha": alpha.detach()}
+    f, b = statistics.median(fwd), statistics.median(bwd)
+    return {"forward_ms": round(f, 3), "backward_ms": round(b, 3), "total_ms": round(f + b, 3), "frames": frames,
+            "_last": last}
+
+
+def bench_raster_backward(gaussians: int = 10_000, size: int = 256, frames: int = 10, reference_frames: int = 2,
+                          warmup: int = 1, batch: int = 1, seed: int = 0, threads: int = 0,
+                          simd: str | None = None) -> dict:
+    """Forward and backward time of the differentiable rasterizer: the native one
+    (:func:`render_core.raster.native.rasterize_differentiable`) against the torch reference's autograd, side by
+    side in one run on the same synthetic head (``gaussians`` face Gaussians plus its mouth, SH degree 0, framed to
+    cover about half of a ``size`` square image), fresh random expression and pose every frame. Medians (ms) per
+    call of ``batch`` frames; the reference runs ``reference_frames`` frames."""
+    from .raster import reference
+
+    avatar = synth_avatar(gaussians, 8, seed=seed, sh_degree=0)
+    cams = framed_camera(avatar, size).expand(batch)
+    g = torch.Generator().manual_seed(seed + 1)
+
+    def native_step(*args):
+        return native.rasterize_differentiable(*args, simd=simd, threads=threads)
+
+    def reference_step(*args):
+        out = reference.rasterize(*args)
+        return out.rgb, out.alpha
+
+    nat = _time_raster_step(native_step, avatar, cams, frames, warmup, g)
+    last = nat.pop("_last")
+    node = last["node"]
+    report = {
+        "benchmark": "raster_backward",
+        "gaussians": avatar.num_gaussians,
+        "mouth_gaussians": avatar.num_mouth,
+        "size": size,
+        "batch": batch,
+        "raster_mode": avatar.raster_mode,
+        "coverage": round(coverage(last["alpha"]), 4),
+        "native": {**nat, "simd": node.timings.get("isa"), "threads": node.timings.get("threads"),
+                   "forward_stages_ms": {k: round(node.timings[k], 3) for k in ("lbs", "bin", "raster")},
+                   "backward_stages_ms": {k: round(node.backward_timings[k], 3) for k in ("raster", "project")},
+                   "pairs": node.handle.pairs, "saved_bytes": node.handle.nbytes},
+    }
+    if reference_frames > 0:
+        ref = _time_raster_step(reference_step, avatar, cams, reference_frames, warmup, g)
+        ref.pop("_last")
+        report["reference"] = ref
+        report["speedup"] = {k: round(ref[f"{k}_ms"] / max(nat[f"{k}_ms"], 1e-9), 1)
+                             for k in ("forward", "backward", "total")}
+    report["machine"] = {"cpu": _cpu_name(), "cores": _cores(), "python": platform.python_version(),
+                         "torch": torch.__version__, "torch_threads": torch.get_num_threads()}
+    return report
+
+
 def smooth_frames(avatar: Avatar, frames: int, fps: float, g: torch.Generator) -> Frame:
     """A talking-head-like sequence at ``fps``: the expression glides between two random ones, the neck turns
     and nods slowly and the jaw opens and closes at 2 Hz (consecutive frames are as similar as in a live stream)."""

@@ -53,7 +53,7 @@ struct TileSplat {
     float log2_opacity, depth;   // compositing opacity (antialiasing compensation included), camera z
     float r, g, b;               // colour
     float level;                 // log2(255 opacity): eligible only where q <= level
-    float pad;
+    uint32_t id;                 // Gaussian index in its frame (set where the backward needs it, else 0)
 };
 static_assert(sizeof(TileSplat) == 48, "TileSplat is 48 bytes");
 

@@ -307,7 +307,7 @@ static inline void project(const F x[3], const Mat3& rw, const F s[3], F opacity
         Splat& o = out[l];
         o.t.mx = f[0][l], o.t.my = f[1][l], o.t.ha = f[2][l], o.t.cb = f[3][l], o.t.hc = f[4][l];
         o.t.log2_opacity = f[5][l], o.t.depth = f[6][l], o.t.r = f[7][l], o.t.g = f[8][l], o.t.b = f[9][l];
-        o.t.level = f[14][l], o.t.pad = 0.0f;
+        o.t.level = f[14][l], o.t.id = 0;
         o.x0 = f[10][l], o.x1 = f[11][l], o.y0 = f[12][l], o.y1 = f[13][l];
     }
 }

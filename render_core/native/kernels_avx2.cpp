@@ -1,4 +1,5 @@
-// The kernels of kernels.inl compiled for the avx2 instruction set (see CMakeLists.txt for its flags).
+// The kernels of kernels.inl and backward.inl compiled for the avx2 instruction set (see CMakeLists.txt for
+// its flags).
 #define BS_ISA_AVX2
 #define BS_NS avx2
 #include "simd.hpp"
@@ -10,3 +11,4 @@ using V = Avx2;
 }  // namespace bs
 
 #include "kernels.inl"
+#include "backward.inl"

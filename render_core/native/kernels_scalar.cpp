@@ -1,4 +1,5 @@
-// The kernels of kernels.inl compiled for the scalar instruction set (see CMakeLists.txt for its flags).
+// The kernels of kernels.inl and backward.inl compiled for the scalar instruction set (see CMakeLists.txt for
+// its flags).
 
 #define BS_NS scalar
 #include "simd.hpp"
@@ -10,3 +11,4 @@ using V = Scalar;
 }  // namespace bs
 
 #include "kernels.inl"
+#include "backward.inl"

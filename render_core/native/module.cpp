@@ -8,10 +8,12 @@
 
 #include <algorithm>
 #include <cmath>
+#include <memory>
 #include <stdexcept>
 #include <string>
 #include <vector>
 
+#include "backward.hpp"
 #include "pipeline.hpp"
 
 namespace nb = nanobind;
@@ -189,6 +191,99 @@ nb::dict rasterize(In<float> means, In<float> quats, In<float> scales, In<float>
     return timings(tm, k, nt);
 }
 
+// What a training forward keeps for its backward (see backward.hpp); Python holds it until the backward.
+struct TrainContext {
+    bs::RasterContext ctx;
+};
+
+struct PosedInputs {
+    In<float> means, quats, scales, opacities, colors;
+};
+
+size_t check_posed(const PosedInputs& in, size_t& N) {
+    require(in.means.ndim() == 3 && in.means.shape(2) == 3, "means: expected [B, N, 3]");
+    const size_t B = in.means.shape(0);
+    N = in.means.shape(1);
+    require(B >= 1, "means: empty batch");
+    require_shape(in.quats, {B, N, 4}, "quats");
+    require_shape(in.scales, {B, N, 3}, "scales");
+    require_shape(in.opacities, {B, N}, "opacities");
+    require_shape(in.colors, {B, N, 3}, "colors");
+    return B;
+}
+
+// The forward of rasterize() that also returns a context for rasterize_backward: (timings, context).
+nb::tuple rasterize_train(In<float> means, In<float> quats, In<float> scales, In<float> opacities, In<float> colors,
+                          In<float> K, In<float> R, In<float> t, int width, int height, bool antialiased,
+                          In<float> bg, Out<float> rgb, Out<float> alpha, Out<float> depth, const std::string& isa,
+                          int threads) {
+    size_t N = 0;
+    const size_t B = check_posed({means, quats, scales, opacities, colors}, N);
+    auto cams = make_cams(K, R, t, int(B), width, height, antialiased);
+    Outputs o{rgb, alpha, depth};
+    check_outputs(o, bg, int(B), width, height);
+    const bs::Kernels& k = bs::select_kernels(isa);
+    const int nt = thread_count(threads);
+    bs::PosedView pv{means.data(), quats.data(), scales.data(), opacities.data(), colors.data(), int(N)};
+    auto ctx = std::make_unique<TrainContext>();
+    bs::Timings tm;
+    {
+        nb::gil_scoped_release release;
+        tm = bs::rasterize_train(pv, cams.data(), int(B), bg.data(), rgb.data(), alpha.data(), depth.data(), k, nt,
+                                 ctx->ctx);
+    }
+    nb::object handle = nb::cast(ctx.release(), nb::rv_policy::take_ownership);
+    return nb::make_tuple(timings(tm, k, nt), handle);
+}
+
+// Gradients of a loss w.r.t. the inputs of the forward that made ctx, given dL/drgb and dL/dalpha. Writes
+// [B, N, ...] gradients of means, quats, scales, opacities, colours and the [B, 3] background gradient.
+nb::dict rasterize_backward(const TrainContext& c, In<float> means, In<float> quats, In<float> scales,
+                            In<float> opacities, In<float> bg, In<float> grad_rgb, In<float> grad_alpha,
+                            Out<float> g_means, Out<float> g_quats, Out<float> g_scales, Out<float> g_opacities,
+                            Out<float> g_colors, Out<float> g_bg, int threads) {
+    const bs::RasterContext& ctx = c.ctx;
+    require(ctx.kb != nullptr, "rasterize_backward: the context holds no forward");
+    const size_t B = ctx.B, N = ctx.N, H = ctx.height, W = ctx.width;
+    require_shape(means, {B, N, 3}, "means");
+    require_shape(quats, {B, N, 4}, "quats");
+    require_shape(scales, {B, N, 3}, "scales");
+    require_shape(opacities, {B, N}, "opacities");
+    require_shape(bg, {B, 3}, "background");
+    require_shape(grad_rgb, {B, H, W, 3}, "grad_rgb");
+    require_shape(grad_alpha, {B, H, W}, "grad_alpha");
+    require_shape(g_means, {B, N, 3}, "grad_means");
+    require_shape(g_quats, {B, N, 4}, "grad_quats");
+    require_shape(g_scales, {B, N, 3}, "grad_scales");
+    require_shape(g_opacities, {B, N}, "grad_opacities");
+    require_shape(g_colors, {B, N, 3}, "grad_colors");
+    require_shape(g_bg, {B, 3}, "grad_background");
+    const int nt = thread_count(threads);
+    bs::PosedView pv{means.data(), quats.data(), scales.data(), opacities.data(), nullptr, int(N)};
+    bs::PosedGrads g{g_means.data(), g_quats.data(), g_scales.data(), g_opacities.data(), g_colors.data()};
+    bs::BackwardTimings tm;
+    {
+        nb::gil_scoped_release release;
+        tm = bs::rasterize_backward(ctx, pv, bg.data(), grad_rgb.data(), grad_alpha.data(), g, nt);
+        // dL/dbackground = sum over pixels of T dL/drgb (in double, pixel order: deterministic).
+        const float* gr = grad_rgb.data();
+        float* gb = g_bg.data();
+#pragma omp parallel for num_threads(nt) schedule(static)
+        for (int b = 0; b < int(B); ++b) {
+            const float* T = ctx.frames[b].T.data();
+            const float* grb = gr + size_t(b) * H * W * 3;
+            double s[3] = {0.0, 0.0, 0.0};
+            for (size_t p = 0; p < H * W; ++p)
+                for (int e = 0; e < 3; ++e) s[e] += double(T[p]) * grb[3 * p + e];
+            for (int e = 0; e < 3; ++e) gb[3 * b + e] = float(s[e]);
+        }
+    }
+    nb::dict d;
+    d["raster"] = tm.raster_ms, d["project"] = tm.project_ms;
+    d["isa"] = std::string(ctx.kb->name), d["threads"] = nt;
+    return d;
+}
+
 // [B, H, W, 3] colour and [B, H, W] alpha in [0, 1] -> [B, H, W, 4] 8-bit RGBA, rounded (what encoders take).
 void to_rgba8(In<float> rgb, In<float> alpha, Out<uint8_t> out, int threads) {
     require(rgb.ndim() == 4 && rgb.shape(3) == 3, "rgb: expected [B, H, W, 3]");
@@ -251,6 +346,18 @@ NB_MODULE(_native, m) {
     m.def("rasterize", &rasterize, "means"_a, "quats"_a, "scales"_a, "opacities"_a, "colors"_a, "K"_a, "R"_a, "t"_a,
           "width"_a, "height"_a, "antialiased"_a, "background"_a, "rgb"_a, "alpha"_a, "depth"_a, "isa"_a = "auto",
           "threads"_a = 0);
+    nb::class_<TrainContext>(m, "RasterContext",
+                             "What a training forward keeps for its backward (projected splats, tile lists as "
+                             "Gaussian indices, per-pixel final transmittance and last contributor).")
+        .def_prop_ro("nbytes", [](const TrainContext& c) { return c.ctx.nbytes(); })
+        .def_prop_ro("pairs", [](const TrainContext& c) { return c.ctx.pairs(); })
+        .def_prop_ro("isa", [](const TrainContext& c) { return std::string(c.ctx.kb ? c.ctx.kb->name : ""); });
+    m.def("rasterize_train", &rasterize_train, "means"_a, "quats"_a, "scales"_a, "opacities"_a, "colors"_a, "K"_a,
+          "R"_a, "t"_a, "width"_a, "height"_a, "antialiased"_a, "background"_a, "rgb"_a, "alpha"_a, "depth"_a,
+          "isa"_a = "auto", "threads"_a = 0);
+    m.def("rasterize_backward", &rasterize_backward, "context"_a, "means"_a, "quats"_a, "scales"_a, "opacities"_a,
+          "background"_a, "grad_rgb"_a, "grad_alpha"_a, "grad_means"_a, "grad_quats"_a, "grad_scales"_a,
+          "grad_opacities"_a, "grad_colors"_a, "grad_background"_a, "threads"_a = 0);
     m.def("to_rgba8", &to_rgba8, "rgb"_a, "alpha"_a, "out"_a, "threads"_a = 0);
     m.def("available_isas", &bs::available_isas, "SIMD paths this build can run here, slowest first.");
     m.def("bandwidth_probe", &bandwidth_probe, "nbytes"_a, "threads"_a = 0);

@@ -57,13 +57,6 @@ void joint_transforms(const AvatarView& av, const float* rot, float* A) {
     }
 }
 
-struct FrameBins {
-    std::vector<uint32_t> order, tmp, keys, tmp_keys, tile_offsets;
-    std::vector<uint32_t> counts;  // [threads, tiles]
-    std::vector<uint32_t> hist;    // [threads, 2048]
-    std::vector<TileSplat> binned;
-};
-
 // fb.order = indices of the visible splats sorted by depth, ties in index order: a stable LSD radix sort
 // (3 passes of 11 bits over the bits of the positive float depths), each pass split across the threads.
 void sort_visible_by_depth(const Splat* s, int n, FrameBins& fb, int threads) {
@@ -129,6 +122,7 @@ void sort_visible_by_depth(const Splat* s, int n, FrameBins& fb, int threads) {
     fb.order.resize(m);
 }
 
+}  // namespace
 
 // Visible splats of one frame, depth-sorted (ties by index), copied tile by tile into fb.binned (each tile's
 // records contiguous and in depth order) so that compositing streams through memory.
@@ -184,6 +178,8 @@ void bin_frame(const Splat* s, int n, int tiles_x, int tiles, FrameBins& fb, int
         }
     }
 }
+
+namespace {
 
 // Depth-sort, bin and composite B frames of projected splats ([B, n] each); returns the binning time (ms).
 double rasterize_splats(const Splat* splats, int n, int B, const Cam* cams, const float* bg, float* rgb,

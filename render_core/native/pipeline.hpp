@@ -1,6 +1,7 @@
 // The native renderer's entry points (used by module.cpp).
 #pragma once
 
+#include <cstdint>
 #include <string>
 #include <vector>
 
@@ -12,6 +13,18 @@ struct Timings {
     double blend_ms = 0.0, lbs_ms = 0.0, raster_ms = 0.0;
     double bin_ms = 0.0;  // part of raster_ms: depth sort and tile binning
 };
+
+// One frame's depth order and tile bins (bin_frame); the vectors are reused from call to call.
+struct FrameBins {
+    std::vector<uint32_t> order, tmp, keys, tmp_keys, tile_offsets;
+    std::vector<uint32_t> counts;  // [threads, tiles]
+    std::vector<uint32_t> hist;    // [threads, 2048]
+    std::vector<TileSplat> binned;
+};
+
+// Visible splats (x0 < x1) of one frame [n], depth-sorted (ties by index), copied tile by tile into fb.binned:
+// tile t's records are binned[tile_offsets[t], tile_offsets[t + 1]), in depth order.
+void bin_frame(const Splat* s, int n, int tiles_x, int tiles, FrameBins& fb, int threads);
 
 // SIMD paths this build can run on this CPU, slowest first ("scalar", then "avx2", "avx512").
 std::vector<std::string> available_isas();

@@ -71,7 +71,8 @@ def render(
     One set of splats may be seen by B cameras, or B sets by one camera (broadcast), or B by B pairwise.
     ``mode`` is the bundle's raster mode ("classic" or "antialiased"); ``backend`` None picks
     :func:`default_backend`. Returns RGB [B, H, W, 3] over the background, alpha [B, H, W] and alpha-composited
-    depth [B, H, W]. Only the reference backend is differentiable.
+    depth [B, H, W]. Only the reference backend is differentiable here (for a native forward and backward of
+    posed Gaussians, see :func:`render_core.raster.native.rasterize_differentiable`).
 
     Example::
 
