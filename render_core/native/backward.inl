@@ -2,51 +2,15 @@
 // instruction set: kernels_scalar.cpp, kernels_avx2.cpp and kernels_avx512.cpp include this file after
 // kernels.inl (whose V, F, M and W it uses).
 //
-// The training forward composites exactly as raster_tile does (same arithmetic: the same image, bit for bit) and
-// also records each pixel's final transmittance and last contributor. The backward recomputes every alpha of the
-// tile with that same arithmetic, so it takes the forward's decisions (1/255 skip, 0.999 clamp, transmittance
-// stop) for every pair.
+// The training forward is raster_tile_train (kernels.inl: the same compositing loop as raster_tile, so the same
+// image bit for bit, also recording each pixel's final transmittance and last contributor). The backward
+// recomputes every alpha of the tile with that same arithmetic, so it takes the forward's decisions (1/255 skip,
+// 0.999 clamp, transmittance stop) for every pair.
 
 #include "backward.hpp"
 
 namespace bs {
 namespace BS_NS {
-
-// Per-row pixel spans [lo, hi] of each splat's eligibility ellipse on the row's centre line (q <= level, plus
-// 0.05 px; lo = 1e9, hi = -1e9 where empty): lo, hi are [rows][cpad]. The same arithmetic as raster_tile's.
-static void tile_row_spans(const TileSplat* splats, int count, int cpad, int yb, int rows, float* tmp, float* lo,
-                           float* hi) {
-    float* my = tmp;
-    float* xc0 = my + cpad;
-    float* shear = xc0 + cpad;
-    float* ia = shear + cpad;
-    float* k2 = ia + cpad;
-    float* k0 = k2 + cpad;
-    for (int i = 0; i < cpad; ++i) {
-        if (i < count) {
-            const TileSplat& s = splats[i];
-            my[i] = s.my, xc0[i] = s.mx - 0.5f, ia[i] = 0.5f / s.ha, shear[i] = 0.5f * s.cb / s.ha;
-            k2[i] = s.cb * s.cb - 4.0f * s.ha * s.hc, k0[i] = 4.0f * s.ha * s.level;
-        } else {
-            my[i] = xc0[i] = shear[i] = k2[i] = 0.0f, ia[i] = 1.0f, k0[i] = -1.0f;
-        }
-    }
-    const F big = V::set1(1e9f), zero = V::set1(0.0f);
-    for (int r = 0; r < rows; ++r) {
-        const F yc = V::set1(float(yb + r) + 0.5f);
-        for (int c = 0; c < cpad; c += W) {
-            const F dy = V::load(my + c) - yc;
-            const F disc = V::fma(dy * dy, V::load(k2 + c), V::load(k0 + c));
-            const F half = V::fma(V::sqrt(V::max(disc, zero)), V::load(ia + c), V::set1(0.05f));
-            const F xc = V::fma(V::load(shear + c), dy, V::load(xc0 + c));
-            const F l = V::ceil(xc - half);
-            const F h = V::floor(xc + half);
-            const M empty = V::mor(V::lt(disc, zero), V::gt(l, h));
-            V::store(lo + size_t(r) * cpad + c, V::select(empty, big, l));
-            V::store(hi + size_t(r) * cpad + c, V::select(empty, -big, h));
-        }
-    }
-}
 
 // Alpha of splat s at W pixel centres px on a row at offset dy = my - yc: q (base-2 exponent) and the clamped
 // alpha, exactly as raster_tile computes them; e is the unclamped value.
@@ -55,72 +19,6 @@ static inline void splat_alpha(const TileSplat& s, F px, float dy, F& dx, F& q, 
     q = V::fma(dx, V::fma(V::set1(s.ha), dx, V::set1(s.cb * dy)), V::set1(s.hc * dy * dy));
     e = vexp2<V>(V::set1(s.log2_opacity) - q);
     a = V::min(V::set1(kAlphaMax), e);
-}
-
-// ------------------------------------------------------------------------------------------------ training forward
-
-// raster_tile (kernels.inl) that also writes T and last-contributor counts: segment-major, front to back.
-static void raster_tile_train(const TileSplat* splats, int count, int tx, int ty, const Cam& cam,
-                              const float* background, float* rgb, float* alpha, float* depth, float* Tout,
-                              uint32_t* last_out) {
-    constexpr int NS = kTile / W;
-    const int xb = tx * kTile, yb = ty * kTile;
-    const int xe = std::min(xb + kTile, cam.width), ye = std::min(yb + kTile, cam.height);
-    const int rows = ye - yb;
-    const int cpad = (count + W - 1) / W * W;
-    static thread_local std::vector<float> scratch_tls;
-    std::vector<float>& scratch = scratch_tls;
-    if (scratch.size() < size_t(cpad) * (6 + 2 * kTile)) scratch.resize(size_t(cpad) * (6 + 2 * kTile));
-    float* lo = scratch.data() + size_t(6) * cpad;
-    float* hi = lo + size_t(kTile) * cpad;
-    tile_row_spans(splats, count, cpad, yb, rows, scratch.data(), lo, hi);
-    const F iota = V::iota(), one = V::set1(1.0f), zero = V::set1(0.0f);
-    const F amin = V::set1(kAlphaMin), tstop = V::set1(kTStop);
-    for (int seg = 0; seg < rows * NS; ++seg) {
-        const int r = seg / NS, x0 = xb + (seg % NS) * W, y = yb + r;
-        const float yc = float(y) + 0.5f;
-        const F px = V::set1(float(x0) + 0.5f) + iota;
-        const F seg_lo = V::set1(float(x0)), seg_hi = V::set1(float(x0 + W - 1));
-        F T = one, Cr = zero, Cg = zero, Cb = zero, D = zero, L = zero;
-        M live = V::lt(px, V::set1(float(xe)));
-        const float* row_lo = lo + size_t(r) * cpad;
-        const float* row_hi = hi + size_t(r) * cpad;
-        for (int c = 0; c < cpad && V::any(live); c += W) {
-            unsigned reach = V::bits(V::mand(V::le(V::load(row_lo + c), seg_hi), V::ge(V::load(row_hi + c), seg_lo)));
-            while (reach) {
-                const int i = c + __builtin_ctz(reach);
-                reach &= reach - 1;
-                const TileSplat& s = splats[i];
-                F dx, q, e, a;
-                splat_alpha(s, px, s.my - yc, dx, q, e, a);
-                const M ok = V::mand(live, V::mand(V::ge(q, zero), V::ge(a, amin)));
-                const F nt = T * (one - a);
-                const M stop = V::mand(ok, V::le(nt, tstop));
-                const M add = V::mandnot(stop, ok);
-                const F w = V::select(add, a * T, zero);
-                Cr = V::fma(w, V::set1(s.r), Cr);
-                Cg = V::fma(w, V::set1(s.g), Cg);
-                Cb = V::fma(w, V::set1(s.b), Cb);
-                D = V::fma(w, V::set1(s.depth), D);
-                T = V::select(add, nt, T);
-                L = V::select(add, V::set1(float(i + 1)), L);
-                live = V::mandnot(stop, live);
-            }
-        }
-        alignas(64) float out[6][kMaxLanes];
-        V::store(out[0], T), V::store(out[1], Cr), V::store(out[2], Cg), V::store(out[3], Cb), V::store(out[4], D);
-        V::store(out[5], L);
-        for (int i = 0; i < W && x0 + i < xe; ++i) {
-            const size_t p = size_t(y) * cam.width + x0 + i;
-            rgb[p * 3 + 0] = out[1][i] + out[0][i] * background[0];
-            rgb[p * 3 + 1] = out[2][i] + out[0][i] * background[1];
-            rgb[p * 3 + 2] = out[3][i] + out[0][i] * background[2];
-            alpha[p] = 1.0f - out[0][i];
-            depth[p] = out[4][i];
-            Tout[p] = out[0][i];
-            last_out[p] = uint32_t(out[5][i]);
-        }
-    }
 }
 
 // ------------------------------------------------------------------------------------------------ backward

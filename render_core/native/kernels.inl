@@ -396,34 +396,18 @@ static void project_posed(const PosedView& pv, int b, const Cam& cam, Splat* out
 
 // ------------------------------------------------------------------------------------------------ raster
 
-// One 16x16 tile. Each row is cut into segments of W pixels (one vector). First, for every row and every Gaussian
-// of the tile, the exact pixel span of its eligibility ellipse on the row's centre line (q <= level, plus
-// 0.05 px) is computed, W Gaussians at a time. Then each segment scans the spans W at a time and composites
-// only the Gaussians that reach it, in depth order, branch-free, with its transmittance, colour and depth in
-// registers, until all its pixels have stopped.
-static void raster_tile(const TileSplat* splats, int count, int tx, int ty, const Cam& cam,
-                        const float* background, float* rgb, float* alpha, float* depth) {
-    constexpr int NS = kTile / W;  // segments per row
-    const int xb = tx * kTile, yb = ty * kTile;
-    const int xe = std::min(xb + kTile, cam.width), ye = std::min(yb + kTile, cam.height);
-    const int rows = ye - yb;
-    const int cpad = (count + W - 1) / W * W;
-    static thread_local std::vector<float> scratch_tls;
-    std::vector<float>& scratch = scratch_tls;
-    if (scratch.size() < size_t(cpad) * (6 + 2 * kTile)) scratch.resize(size_t(cpad) * (6 + 2 * kTile));
-    // Per Gaussian (structure of arrays): my, span centre at dy = 0, shear, 1/a, k2, k0 (padding lanes: no span);
-    // then the spans of every row.
-    float* my = scratch.data();
+// Per-row pixel spans [lo, hi] of each splat's eligibility ellipse on the row's centre line (q <= level, plus
+// 0.05 px; lo = 1e9, hi = -1e9 where empty): lo, hi are [rows][cpad]. The same arithmetic as raster_tile's.
+static void tile_row_spans(const TileSplat* splats, int count, int cpad, int yb, int rows, float* tmp, float* lo,
+                           float* hi) {
+    float* my = tmp;
     float* xc0 = my + cpad;
     float* shear = xc0 + cpad;
     float* ia = shear + cpad;
     float* k2 = ia + cpad;
     float* k0 = k2 + cpad;
-    float* lo = k0 + cpad;
-    float* hi = lo + size_t(kTile) * cpad;
     for (int i = 0; i < cpad; ++i) {
         if (i < count) {
-            // q <= level on row dy: a dx^2 + 2 b dy dx + c dy^2 - 2 level <= 0 with a = 2 ha, b = cb, c = 2 hc.
             const TileSplat& s = splats[i];
             my[i] = s.my, xc0[i] = s.mx - 0.5f, ia[i] = 0.5f / s.ha, shear[i] = 0.5f * s.cb / s.ha;
             k2[i] = s.cb * s.cb - 4.0f * s.ha * s.hc, k0[i] = 4.0f * s.ha * s.level;
@@ -446,22 +430,44 @@ static void raster_tile(const TileSplat* splats, int count, int tx, int ty, cons
             V::store(hi + size_t(r) * cpad + c, V::select(empty, -big, h));
         }
     }
-    const F iota = V::iota();
-    const F one = V::set1(1.0f);
+}
+
+// One 16x16 tile. Each row is cut into segments of W pixels (one vector). First, for every row and every Gaussian
+// of the tile, the exact pixel span of its eligibility ellipse on the row's centre line (tile_row_spans). Then each
+// segment scans the spans W at a time and composites only the Gaussians that reach it, in depth order,
+// branch-free, with its transmittance, colour and depth in registers, until all its pixels have stopped.
+// Train: also write each pixel's final transmittance and last contributor (1-based; 0: none) for the backward.
+template <bool Train>
+static void raster_tile_impl(const TileSplat* splats, int count, int tx, int ty, const Cam& cam,
+                             const float* background, float* rgb, float* alpha, float* depth, float* Tout,
+                             uint32_t* last_out) {
+    constexpr int NS = kTile / W;  // segments per row
+    const int xb = tx * kTile, yb = ty * kTile;
+    const int xe = std::min(xb + kTile, cam.width), ye = std::min(yb + kTile, cam.height);
+    const int rows = ye - yb;
+    const int cpad = (count + W - 1) / W * W;
+    static thread_local std::vector<float> scratch_tls;
+    std::vector<float>& scratch = scratch_tls;
+    if (scratch.size() < size_t(cpad) * (6 + 2 * kTile)) scratch.resize(size_t(cpad) * (6 + 2 * kTile));
+    float* lo = scratch.data() + size_t(6) * cpad;
+    float* hi = lo + size_t(kTile) * cpad;
+    tile_row_spans(splats, count, cpad, yb, rows, scratch.data(), lo, hi);
+    const F iota = V::iota(), one = V::set1(1.0f), zero = V::set1(0.0f);
     const F amax = V::set1(kAlphaMax), amin = V::set1(kAlphaMin), tstop = V::set1(kTStop);
     for (int seg = 0; seg < rows * NS; ++seg) {
         const int r = seg / NS, x0 = xb + (seg % NS) * W, y = yb + r;
         const float yc = float(y) + 0.5f;
         const F px = V::set1(float(x0) + 0.5f) + iota;
         const F seg_lo = V::set1(float(x0)), seg_hi = V::set1(float(x0 + W - 1));
-        F T = one, Cr = zero, Cg = zero, Cb = zero, D = zero;
+        F T = one, Cr = zero, Cg = zero, Cb = zero, D = zero, L = zero;
         M live = V::lt(px, V::set1(float(xe)));
         const float* row_lo = lo + size_t(r) * cpad;
         const float* row_hi = hi + size_t(r) * cpad;
         for (int c = 0; c < cpad && V::any(live); c += W) {
             unsigned reach = V::bits(V::mand(V::le(V::load(row_lo + c), seg_hi), V::ge(V::load(row_hi + c), seg_lo)));
             while (reach) {
-                const TileSplat& s = splats[c + __builtin_ctz(reach)];
+                const int i = c + __builtin_ctz(reach);
+                const TileSplat& s = splats[i];
                 reach &= reach - 1;
                 const float dy = s.my - yc;
                 const F dx = V::set1(s.mx) - px;
@@ -479,11 +485,13 @@ static void raster_tile(const TileSplat* splats, int count, int tx, int ty, cons
                 Cb = V::fma(w, V::set1(s.b), Cb);
                 D = V::fma(w, V::set1(s.depth), D);
                 T = V::select(stop, T, nt);
+                if constexpr (Train) L = V::select(V::mandnot(stop, ok), V::set1(float(i + 1)), L);
                 live = V::mandnot(stop, live);
             }
         }
-        alignas(64) float out[5][kMaxLanes];
+        alignas(64) float out[6][kMaxLanes];
         V::store(out[0], T), V::store(out[1], Cr), V::store(out[2], Cg), V::store(out[3], Cb), V::store(out[4], D);
+        if constexpr (Train) V::store(out[5], L);
         for (int i = 0; i < W && x0 + i < xe; ++i) {
             const size_t p = size_t(y) * cam.width + x0 + i;
             rgb[p * 3 + 0] = out[1][i] + out[0][i] * background[0];
@@ -491,8 +499,21 @@ static void raster_tile(const TileSplat* splats, int count, int tx, int ty, cons
             rgb[p * 3 + 2] = out[3][i] + out[0][i] * background[2];
             alpha[p] = 1.0f - out[0][i];
             depth[p] = out[4][i];
+            if constexpr (Train) Tout[p] = out[0][i], last_out[p] = uint32_t(out[5][i]);
         }
     }
+}
+
+static void raster_tile(const TileSplat* splats, int count, int tx, int ty, const Cam& cam, const float* background,
+                        float* rgb, float* alpha, float* depth) {
+    raster_tile_impl<false>(splats, count, tx, ty, cam, background, rgb, alpha, depth, nullptr, nullptr);
+}
+
+// The training forward: the same image, plus T and the last contributor per pixel (see backward.inl).
+static void raster_tile_train(const TileSplat* splats, int count, int tx, int ty, const Cam& cam,
+                              const float* background, float* rgb, float* alpha, float* depth, float* Tout,
+                              uint32_t* last_out) {
+    raster_tile_impl<true>(splats, count, tx, ty, cam, background, rgb, alpha, depth, Tout, last_out);
 }
 
 const Kernels& kernels() {
