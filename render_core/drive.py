@@ -120,8 +120,8 @@ def _camera(avatar: Avatar, value: Any, width: int, height: int) -> Cameras:
                      "{K, R, t, width, height}", field="camera")
 
 
-def parse_line(avatar: Avatar, obj: Any, width: int, height: int) -> DriveFrame:
-    """One driving-file object -> a frame of the avatar and its camera. Raises FrameError."""
+def parse_frame(avatar: Avatar, obj: Any) -> Frame:
+    """The animation parameters of one driving-file object (its camera aside). Raises FrameError."""
     if not isinstance(obj, dict):
         raise FrameError(f"expected a JSON object with any of: {', '.join(KEYS)}")
     unknown = [k for k in obj if k not in KEYS]
@@ -130,8 +130,12 @@ def parse_line(avatar: Avatar, obj: Any, width: int, height: int) -> DriveFrame:
     expression = _expression(avatar, obj["expression"]) if "expression" in obj else None
     joints = _joints(avatar, obj["joints"]) if "joints" in obj else None
     eyelids = torch.tensor([_numbers(obj["eyelids"], "eyelids", 2)]) if "eyelids" in obj else None
-    frame = Frame.from_params(avatar, expression=expression, joints=joints, eyelids=eyelids)
-    frame.check(avatar)
+    return Frame.from_params(avatar, expression=expression, joints=joints, eyelids=eyelids)  # checked there
+
+
+def parse_line(avatar: Avatar, obj: Any, width: int, height: int) -> DriveFrame:
+    """One driving-file object -> a frame of the avatar and its camera. Raises FrameError."""
+    frame = parse_frame(avatar, obj)
     camera = _camera(avatar, obj["camera"], width, height) if "camera" in obj else default_camera(
         avatar, width, height)
     return DriveFrame(frame, camera)

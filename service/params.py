@@ -15,7 +15,8 @@ from blendsplat.v1 import render_pb2 as pb
 from render_core.avatar import Avatar
 from render_core.camera import Cameras
 from render_core.deform import Frame
-from render_core.drive import parse_line
+from render_core.drive import parse_frame, parse_line
+from render_core.rotation import axis_angle_to_matrix
 
 from .errors import InvalidArgument
 
@@ -113,8 +114,23 @@ def frame(avatar: Avatar, params: pb.FrameParams, order: list[str]) -> Frame:
         line["expression"] = list(params.coefficients) if same else dict(zip(order, params.coefficients, strict=True))
     elif params.named_coefficients:
         line["expression"] = dict(params.named_coefficients)
-    if params.joints:
-        line["joints"] = {name: list(rot.values) for name, rot in params.joints.items()}
     if params.eyelids:
         line["eyelids"] = list(params.eyelids)
-    return parse_line(avatar, line, 1, 1).frame
+    joints = {name: list(rot.values) for name, rot in params.joints.items()}
+    if joints and all(len(v) == 3 for v in joints.values()) and set(joints) <= set(avatar.joint_names):
+        # The common case, all axis-angle: one [J, 3] tensor converts in one call (the loop thread's main cost).
+        frame = parse_frame(avatar, line)
+        aa = torch.zeros(avatar.num_joints, 3)
+        for name, values in joints.items():
+            aa[avatar.joint_names.index(name)] = torch.tensor(values)
+        if not bool(torch.isfinite(aa).all()):
+            bad = next(n for n, v in joints.items() if not all(math.isfinite(x) for x in v))
+            raise InvalidArgument("values must be finite (no NaN or Infinity)", field=f"joints.{bad}")
+        rotations = axis_angle_to_matrix(aa)[None]
+        named = torch.tensor([n in joints for n in avatar.joint_names])
+        frame.joint_rotations = torch.where(named[None, :, None, None], rotations, frame.joint_rotations)
+        frame.check(avatar)
+        return frame
+    if joints:
+        line["joints"] = joints  # 6D rotations or bad names/sizes: the general path, with its errors
+    return parse_frame(avatar, line)
