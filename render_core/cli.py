@@ -182,6 +182,13 @@ def cmd_data_validate(args: argparse.Namespace) -> int:
     return run_validate(args.dir, as_json=args.json)
 
 
+def cmd_eval(args: argparse.Namespace) -> int:
+    from .evaluate import run_eval
+
+    return run_eval(args.bundle, args.data, as_json=args.json, split=args.split, batch=args.batch,
+                    report=args.report, contact_sheet=args.contact_sheet)
+
+
 def cmd_data_synth(args: argparse.Namespace) -> int:
     from .data.generate import synth_dataset
 
@@ -286,6 +293,17 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--trusted", action="store_true",
                    help="allow full unpickling of .frame files that need it (never for data from others)")
     s.set_defaults(fn=cmd_data_convert)
+
+    e = sub.add_parser("eval", help="PSNR, SSIM and head-mask PSNR of a bundle on a dataset's held-out frames "
+                                    "(ground-truth background masked to black)")
+    e.add_argument("--bundle", required=True, type=Path)
+    e.add_argument("--data", required=True, type=Path)
+    e.add_argument("--split", choices=("test", "train", "all"), default="test")
+    e.add_argument("--batch", type=int, default=4)
+    e.add_argument("--report", type=Path, default=None, help="also write the report JSON here")
+    e.add_argument("--contact-sheet", type=Path, default=None, help="prediction | ground truth PNG")
+    e.add_argument("--json", action="store_true")
+    e.set_defaults(fn=cmd_eval)
 
     r = sub.add_parser("render", help="render a driving file (JSON lines) to images or a video")
     r.add_argument("--bundle", required=True, type=Path)

@@ -172,3 +172,18 @@ def test_data_synth_cli_writes_a_valid_dataset(tmp_path, head, capsys, monkeypat
     summary = json.loads(capsys.readouterr().out)
     assert summary["frames"] == 7 and summary["test"] >= 1 and summary["face_model"] == head.name
     assert validate_dataset(out) == []
+
+
+def test_eval_cli_prints_the_metrics(tmp_path, head, capsys):
+    import json
+
+    from render_core.bundle import write_bundle
+    from render_core.data.generate import synth_dataset
+    from render_core.initialize import init_avatar
+    from service.cli import main
+
+    synth_dataset(tmp_path / "ds", frames=6, size=32, seed=1, facemodel=head)
+    write_bundle(init_avatar(head, gaussians=2000, mouth=40, opacity=0.9), tmp_path / "a.bundle")
+    assert main(["eval", "--bundle", str(tmp_path / "a.bundle"), "--data", str(tmp_path / "ds"), "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert {"psnr", "ssim", "psnr_head", "frames"} <= set(report) and report["frames"] == 1
