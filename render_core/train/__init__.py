@@ -1,0 +1,13 @@
+"""Training: learn Gaussian blendshapes from a tracked video (METHOD.md sections 3-6).
+
+- :mod:`.model`: the trainable avatar with the blendshape-consistency parametrisation (Eq. 2) and its ablations;
+- :mod:`.geometry`: closest surface points and per-blendshape displacement magnitudes d_{i,k};
+- :mod:`.losses`: L1, D-SSIM, alpha MSE, mouth-cylinder regulariser;
+- :mod:`.loop`: :func:`train` (presets in :mod:`.presets`), checkpoints and exact resume.
+"""
+
+from .loop import train
+from .model import CONSISTENCY, TrainableAvatar
+from .presets import PRESETS, Preset, get_preset
+
+__all__ = ["CONSISTENCY", "PRESETS", "Preset", "TrainableAvatar", "get_preset", "train"]

@@ -1,0 +1,224 @@
+"""Training (render_core.train): the consistency parametrisation, losses, the loop, exact resume, the bundle."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from render_core.bundle import read_bundle
+from render_core.data import read_dataset
+from render_core.data.frames import frame_inputs, targets
+from render_core.data.generate import synth_dataset
+from render_core.deform import blend
+from render_core.facemodel import FaceModel
+from render_core.initialize import init_avatar
+from render_core.renderer import AvatarRenderer
+from render_core.rotation import axis_angle_to_matrix, matrix_to_quat, quat_multiply
+from render_core.train import CONSISTENCY, TrainableAvatar, get_preset, train
+from render_core.train.geometry import closest_points, consistency_range, displacement_magnitudes
+from render_core.train.loop import forward, load_checkpoint, make_optimizer
+from render_core.train.losses import MouthCylinder, psnr, ssim
+
+TOY = get_preset("tiny").with_(gaussians=400, mouth=40, sh_every=15, checkpoint_every=1000, log_every=1,
+                               final_eval_frames=2, xyz_decay_steps=50)
+
+
+@pytest.fixture(scope="module")
+def toy(head, tmp_path_factory):
+    """A 64 x 64 synthetic dataset of 6 frames (5 train, 1 test) on the open head."""
+    out = tmp_path_factory.mktemp("toy") / "data"
+    synth_dataset(out, frames=6, size=64, seed=1, facemodel=head)
+    return out
+
+
+@pytest.fixture(scope="module")
+def small(head):
+    return init_avatar(head, gaussians=300, mouth=20, seed=4)
+
+
+@pytest.fixture(scope="module")
+def trained(toy, head, tmp_path_factory):
+    """One short training run (50 iterations) shared by the loss and bundle tests."""
+    out = tmp_path_factory.mktemp("run")
+    summary = train(toy, out / "toy.bsplat", workdir=out / "work", preset=TOY, iterations=50, progress=False,
+                    facemodel=head)
+    return summary, out
+
+
+def _tetra_model() -> tuple[FaceModel, torch.Tensor]:
+    t = torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]]) * 0.1
+    faces = torch.tensor([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+    r = axis_angle_to_matrix(torch.tensor([0.0, 0.0, math.pi / 6]))
+    model = FaceModel(name="tetra", template=t, faces=faces, expression_names=["turn"],
+                      expression_basis=(t @ r.T - t)[None], joint_names=["root", "jaw"], joint_parents=[-1, 0],
+                      joint_positions=torch.zeros(2, 3), lbs_weights=torch.tensor([[1.0, 0.0]] * 4),
+                      skull_joint="root")
+    return model, r
+
+
+# ------------------------------------------------------------------------------------------------ the model
+@pytest.mark.parametrize("consistency", CONSISTENCY)
+def test_zero_residual_equals_the_initialisation(small, head, consistency):
+    model = TrainableAvatar.from_facemodel(small, head, consistency)
+    av = model.to_avatar()
+    for part in ("neutral", "deltas", "mouth"):
+        for key, want in getattr(small, part).tensors().items():
+            assert torch.equal(getattr(getattr(av, part), key), want), f"{part}.{key}"
+    assert torch.equal(av.lbs_weights, small.lbs_weights) and torch.equal(av.mouth_group, small.mouth_group)
+    psi = torch.rand(2, small.num_expressions, generator=torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        got, want = blend(model.avatar(), psi), blend(small, psi)
+    for key in ("means", "quats", "log_scales", "opacity_logits", "sh"):
+        assert torch.equal(getattr(got, key), getattr(want, key))
+
+
+def test_rigid_rotation_gives_that_rotation():
+    """A blendshape rotating the whole mesh by 30 degrees: the model's initial blendshape (dG_hat = 0) rotates every
+    Gaussian's position and orientation by exactly that rotation, and d is the displacement magnitude."""
+    fm, r = _tetra_model()
+    av = init_avatar(fm, gaussians=200, mouth=2, seed=0)
+    model = TrainableAvatar.from_facemodel(av, fm, "all")
+    out = model.to_avatar()
+    q0 = out.neutral.quats
+    q1 = torch.nn.functional.normalize(q0 + out.deltas.quats[0], dim=-1)
+    want = quat_multiply(matrix_to_quat(r).expand_as(q0), q0)
+    assert float(torch.minimum((q1 - want).norm(dim=1), (q1 + want).norm(dim=1)).max()) < 1e-5
+    torch.testing.assert_close(out.neutral.means + out.deltas.means[0], out.neutral.means @ r.T, atol=1e-6, rtol=0)
+    # d: |displacement| at the Gaussians' surface points; a rotation about z moves a point by 2 sin(15 deg) r_xy at
+    # the vertices, and d interpolates the vertices' magnitudes.
+    at_vertices = displacement_magnitudes(fm, fm.template)[0]
+    torch.testing.assert_close(at_vertices, fm.expression_basis[0].norm(dim=1), atol=1e-7, rtol=0)
+    assert float(model.d.max()) <= float(at_vertices.max()) + 1e-7 and float(model.d.min()) >= 0
+
+
+def test_closest_points_on_and_off_the_surface(head):
+    g = torch.Generator().manual_seed(2)
+    tri = torch.randint(len(head.faces), (200,), generator=g)
+    bary = torch.distributions.Dirichlet(torch.ones(3)).sample((200,))
+    corners = head.template.double()[head.faces[tri]]
+    x = (corners * bary.double()[..., None]).sum(1)
+    normal = torch.nn.functional.normalize(torch.linalg.cross(corners[:, 1] - corners[:, 0],
+                                                              corners[:, 2] - corners[:, 0]), dim=1)
+    q = x + 1e-4 * normal
+    got_t, got_b = closest_points(head.template, head.faces, q)
+    back = (head.template.double()[head.faces[got_t]] * got_b[..., None]).sum(1)
+    dist = (back - q).norm(dim=1)
+    assert float(dist.max()) <= 1e-4 + 1e-8  # never farther than the foot of the perpendicular
+    assert float(((back - x).norm(dim=1) < 1e-6).float().mean()) > 0.8  # mostly that foot (else a closer fold)
+    on_t, on_b = closest_points(head.template, head.faces, x)
+    on = (head.template.double()[head.faces[on_t]] * on_b[..., None]).sum(1)
+    assert float((on - x).norm(dim=1).max()) < 1e-7
+    eps, d_max = consistency_range(head)
+    per = head.expression_basis.norm(dim=-1).amax(1)
+    assert eps == pytest.approx(0.1 * float(per[per > 0].min())) and d_max == pytest.approx(float(per.max()))
+
+
+def test_consistency_switches_change_what_is_optimised(small, head, toy):
+    ds = read_dataset(toy)
+    frame, cams = frame_inputs(small, ds.tracking, [0])
+    rgb_t, mask_t = targets(ds, [0])
+    grads = {}
+    for mode in CONSISTENCY:
+        model = TrainableAvatar.from_facemodel(small, head, mode)
+        names = {g["name"] for g in make_optimizer(model, TOY).param_groups}
+        assert ("hat_means" in names) == (mode != "frozen") and "means" in names and "mouth_sh_dc" in names
+        rgb, alpha = forward(model, frame, cams, 0)
+        ((rgb - rgb_t).square().mean() + (alpha - mask_t).square().mean()).backward()
+        grads[mode] = {p: None if model.hat(p) is None or model.hat(p).grad is None else model.hat(p).grad
+                       for p in ("means", "quats", "opacity_logits")}
+        zero_w = model.weights == 0
+    assert 0 < float(zero_w.float().mean()) < 1  # some (Gaussian, blendshape) pairs are masked out
+
+    def masked(g):  # gradient mass on pairs whose consistency weight is 0
+        return float(g[zero_w].abs().sum())
+
+    assert all(v is None for v in grads["frozen"].values())
+    assert masked(grads["all"]["means"]) == 0 and masked(grads["all"]["quats"]) == 0
+    assert masked(grads["positions"]["means"]) == 0 and masked(grads["positions"]["quats"]) > 0
+    assert masked(grads["none"]["means"]) > 0 and masked(grads["none"]["opacity_logits"]) > 0
+    # The effective delta: dG_init + c dG_hat ("all"), dG_init + dG_hat ("none").
+    model = TrainableAvatar.from_facemodel(small, head, "all")
+    with torch.no_grad():
+        model.hat_log_scales.fill_(1.0)
+    torch.testing.assert_close(model.delta("log_scales"), small.deltas.log_scales + model.weights[..., None])
+    model.consistency = "none"
+    torch.testing.assert_close(model.delta("log_scales"), small.deltas.log_scales + 1.0)
+
+
+# ----------------------------------------------------------------------------------------------------- losses
+def test_ssim_and_mouth_cylinder():
+    g = torch.Generator().manual_seed(0)
+    a = torch.rand(1, 32, 32, 3, generator=g)
+    assert float(ssim(a, a)) == pytest.approx(1.0, abs=1e-6)
+    assert float(ssim(a, torch.rand(1, 32, 32, 3, generator=g))) < 0.2
+    x = torch.rand(50, 3, generator=g) * torch.tensor([0.04, 0.015, 0.002])
+    cyl = MouthCylinder.from_points(x)
+    assert float(cyl.loss(x)) == 0.0
+    far = x + torch.tensor([0.0, 0.1, 0.0])
+    assert float(cyl.loss(far)) > 0
+    assert float(cyl.sdf(torch.tensor([[float(cyl.centre[0]), float(cyl.centre[1]) + cyl.radius + 0.01,
+                                         float(cyl.centre[2])]]))) == pytest.approx(0.01, abs=1e-6)
+
+
+# ------------------------------------------------------------------------------------------------------- loop
+def test_loss_falls_on_a_toy(trained):
+    summary, out = trained
+    lines = [json.loads(s) for s in (out / "work" / "log.jsonl").read_text().splitlines()]
+    assert len(lines) == 50 and lines[0]["iteration"] == 1 and lines[-1]["iteration"] == 50
+    assert {"iteration", "loss", "l1", "ssim", "alpha", "psnr", "seconds"} <= set(lines[0])
+    first = np.mean([r["loss"] for r in lines[:5]])
+    last = np.mean([r["loss"] for r in lines[-5:]])
+    assert last < 0.7 * first
+    assert np.mean([r["psnr"] for r in lines[-5:]]) > np.mean([r["psnr"] for r in lines[:5]]) + 1.0
+    assert summary["iterations"] == 50 and summary["bundle"] and set(summary["stage_ms"]) >= {"blend", "backward"}
+
+
+def test_bundle_renders_the_recorded_psnr(trained, toy):
+    summary, out = trained
+    avatar = read_bundle(out / "toy.bsplat")
+    assert avatar.precision == "fp16" and avatar.num_gaussians == TOY.gaussians
+    ds = read_dataset(toy)
+    renderer = AvatarRenderer(avatar, "native")
+    for index, recorded in zip(summary["final"]["frames"], summary["final"]["psnr"], strict=True):
+        frame, cams = frame_inputs(avatar, ds.tracking, [index])
+        rgb_t, _ = targets(ds, [index])
+        got = psnr(renderer.render(frame, cams).rgb, rgb_t)
+        assert got == pytest.approx(recorded, abs=0.1)
+
+
+def test_resume_equals_an_uninterrupted_run(toy, head, tmp_path):
+    cfg = TOY.with_(checkpoint_every=3, sh_every=2)
+    straight = train(toy, tmp_path / "a.bsplat", workdir=tmp_path / "a", preset=cfg, iterations=6, progress=False,
+                     facemodel=head, seed=3)
+    part = train(toy, tmp_path / "b.bsplat", workdir=tmp_path / "b", preset=cfg, iterations=6, progress=False,
+                 facemodel=head, seed=3, stop_after=3)
+    assert part["stopped"] and part["bundle"] is None and not (tmp_path / "b.bsplat").exists()
+    resumed = train(toy, tmp_path / "b.bsplat", workdir=tmp_path / "b", preset=cfg, iterations=6, progress=False,
+                    facemodel=head, resume=True)
+    assert resumed["resumed_from"] == 3 and resumed["iterations"] == 6
+    a = load_checkpoint(tmp_path / "a" / "checkpoints" / "ckpt_0000006.pt")
+    b = load_checkpoint(tmp_path / "b" / "checkpoints" / "ckpt_0000006.pt")
+    assert a["model"].keys() == b["model"].keys()
+    for key in a["model"]:
+        assert torch.equal(a["model"][key], b["model"][key]), key
+    sa, sb = a["optimizer"]["state"], b["optimizer"]["state"]
+    for i in sa:
+        for key in sa[i]:
+            assert torch.equal(sa[i][key], sb[i][key])
+    assert torch.equal(a["rng"], b["rng"])
+    log_a = [json.loads(s)["loss"] for s in (tmp_path / "a" / "log.jsonl").read_text().splitlines()]
+    log_b = [json.loads(s)["loss"] for s in (tmp_path / "b" / "log.jsonl").read_text().splitlines()]
+    assert log_a == log_b
+    assert straight["final"]["psnr"] == resumed["final"]["psnr"]
+
+
+def test_unknown_face_model_is_an_error_naming_what_to_pass(toy, tmp_path):
+    from render_core.errors import DatasetError
+    from render_core.train.loop import resolve_facemodel
+
+    with pytest.raises(DatasetError, match="facemodel=PATH"):
+        resolve_facemodel("flame-2020", None, tmp_path)
