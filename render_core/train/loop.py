@@ -28,7 +28,7 @@ from ..bundle import write_bundle
 from ..camera import Cameras
 from ..data import read_dataset
 from ..data.frames import check_compatible, frame_inputs, targets
-from ..deform import Frame, blend, shade, skin
+from ..deform import Frame, shade, skin
 from ..errors import DatasetError
 from ..facemodel import FaceModel, read_facemodel
 from ..initialize import init_avatar
@@ -125,8 +125,8 @@ def forward(model: TrainableAvatar, frame: Frame, cameras: Cameras, sh_degree: i
     """Render B frames of the model (differentiable): rgb [B, H, W, 3], alpha [B, H, W] on a black background."""
     clock = time.perf_counter
     t0 = clock()
-    avatar = model.avatar(sh_degree)
-    blended = blend(avatar, frame.expression)
+    avatar = model.avatar(sh_degree, deltas=False)
+    blended = model.blend(frame.expression, sh_degree)
     t1 = clock()
     splats = skin(avatar, blended, frame)
     t2 = clock()
@@ -178,8 +178,7 @@ def save_checkpoint(path: Path, *, iteration: int, model: TrainableAvatar, opt: 
     path.parent.mkdir(parents=True, exist_ok=True)
     state = {
         "format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "iteration": iteration,
-        "model": {k: v.detach().cpu() for k, v in model.state_tensors().items()},
-        "meta": model.meta, "eps": model.eps, "d_max": model.d_max, "consistency": model.consistency,
+        "model": model.state(),
         "optimizer": opt.state_dict(), "rng": gen.get_state(), "preset": preset.to_dict(),
         "cylinder": cylinder.to_dict(), "seed": seed, "seconds": seconds,
     }
@@ -200,28 +199,6 @@ def load_checkpoint(path: Path) -> dict:
     if state.get("version") != CHECKPOINT_VERSION:
         raise ValueError(f"{path}: checkpoint version {state.get('version')} is not {CHECKPOINT_VERSION}")
     return state
-
-
-def _model_from_checkpoint(state: dict) -> TrainableAvatar:
-    """Rebuild the model from a checkpoint's tensors (any N: densification changes it)."""
-    tensors = state["model"]
-    model = TrainableAvatar.__new__(TrainableAvatar)
-    torch.nn.Module.__init__(model)
-    model.consistency = state["consistency"]
-    model.eps, model.d_max = float(state["eps"]), float(state["d_max"])
-    model.meta = state["meta"]
-    for name, t in tensors.items():
-        if name in ("pose_correctives", "eyelid_offsets"):
-            continue
-        is_param = not (name.startswith("init_") or name in ("d", "weights", "lbs_weights", "joint_positions",
-                                                             "mouth_group"))
-        if is_param:
-            model.register_parameter(name, torch.nn.Parameter(t.clone()))
-        else:
-            model.register_buffer(name, t.clone())
-    model.pose_correctives = tensors.get("pose_correctives")
-    model.eyelid_offsets = tensors.get("eyelid_offsets")
-    return model
 
 
 # ----------------------------------------------------------------------------------------------------- train
@@ -301,7 +278,7 @@ def train(
         prior_seconds = 0.0
         (workdir / "log.jsonl").write_text("")
     else:
-        model = _model_from_checkpoint(state)
+        model = TrainableAvatar.from_state(state["model"])
         cylinder = losses.MouthCylinder.from_dict(state["cylinder"])
         gen = torch.Generator()
         gen.set_state(state["rng"])
@@ -313,7 +290,7 @@ def train(
         opt.load_state_dict(state["optimizer"])
         del state
 
-    view = model.avatar(detach=True)
+    view = model.avatar(detach=True, deltas=False)
     check_compatible(view, tracking)
     train_idx = np.asarray(tracking.train, dtype=np.int64)
     if len(train_idx) == 0:

@@ -12,6 +12,12 @@ model's displacement magnitudes (:mod:`.geometry`). Switches (``consistency``) f
 
 The neutral Gaussians and the mouth interior are optimised too; LBS weights, pose correctives and eyelid offsets
 stay at their initial values.
+
+Storage is sparse where the method allows it (the blend, its backward and Adam scale with the pairs stored, not
+with K x N): dG_init is stored for its non-zero (Gaussian, blendshape) pairs only (``init_k``, ``init_n``: about
+13% of the pairs on the open head), and a *weighted* residual only for the pairs whose weight c is positive
+(``hat_k``, ``hat_n``, ``hat_w``: about 8%); a residual with c = 0 could never change anything. Unweighted
+residuals (the "none" and "positions" ablations) are dense [K, N, ...].
 """
 
 from __future__ import annotations
@@ -33,9 +39,11 @@ class TrainableAvatar(nn.Module):
     """Parameters (nn.Parameter) and constants (buffers) of an avatar being trained.
 
     Parameters: ``means, quats, log_scales, opacity_logits, sh_dc [N,1,3], sh_rest [N,C-1,3]`` (neutral),
-    ``mouth_<same>`` (mouth interior) and ``hat_<prop>`` [K, N, ...] (dG_hat; absent when frozen).
-    Buffers: ``init_<prop>`` [K, N, ...] (dG_init), ``weights`` [K, N] (c = max(f(d), 0)), ``d`` [K, N],
-    ``lbs_weights``, ``pose_correctives``, ``eyelid_offsets``, ``mouth_group``, ``joint_positions``.
+    ``mouth_<same>`` (mouth interior) and ``hat_<prop>`` (dG_hat; [P, ...] over the pairs ``hat_k, hat_n`` when
+    weighted, [K, N, ...] when not; absent when frozen).
+    Buffers: ``init_<prop>`` [Pi, ...] over the pairs ``init_k, init_n`` (dG_init), ``d`` and ``weights`` [K, N]
+    (c = max(f(d), 0)), ``hat_k, hat_n, hat_w`` (the weighted pairs and their c), ``lbs_weights``,
+    ``joint_positions``, ``mouth_group``; plain attributes ``pose_correctives`` and ``eyelid_offsets`` (or None).
     """
 
     def __init__(self, avatar: Avatar, d: Tensor, eps: float, d_max: float, consistency: str = "all"):
@@ -50,6 +58,7 @@ class TrainableAvatar(nn.Module):
             "expression_names": list(avatar.expression_names), "mouth_joint_names": list(avatar.mouth_joint_names),
             "sh_degree": int(avatar.sh_degree), "face_model": avatar.face_model, "raster_mode": avatar.raster_mode,
             "default_camera": dict(avatar.default_camera), "provenance": dict(avatar.provenance),
+            "num_expressions": avatar.num_expressions,
         }
         n, k = avatar.num_gaussians, avatar.num_expressions
         if tuple(d.shape) != (k, n):
@@ -61,13 +70,27 @@ class TrainableAvatar(nn.Module):
             self.register_parameter(prefix + "opacity_logits", nn.Parameter(g.opacity_logits.clone()))
             self.register_parameter(prefix + "sh_dc", nn.Parameter(g.sh[:, :1].clone()))
             self.register_parameter(prefix + "sh_rest", nn.Parameter(g.sh[:, 1:].clone()))
+        deltas = avatar.deltas
+        nonzero = torch.zeros(k, n, dtype=torch.bool)
         for prop in PROPS:
-            init = getattr(avatar.deltas, prop).clone()
-            self.register_buffer("init_" + prop, init)
-            if consistency != "frozen":
-                self.register_parameter("hat_" + prop, nn.Parameter(torch.zeros_like(init)))
+            t = getattr(deltas, prop)
+            nonzero |= t.reshape(k, n, -1).ne(0).any(-1)
+        ik, in_ = nonzero.nonzero(as_tuple=True)
+        self.register_buffer("init_k", ik)
+        self.register_buffer("init_n", in_)
+        for prop in PROPS:
+            self.register_buffer("init_" + prop, getattr(deltas, prop)[ik, in_].clone())
         self.register_buffer("d", d.float().clone())
         self.register_buffer("weights", consistency_weights(self.d, self.eps, self.d_max))
+        hk, hn = (self.weights > 0).nonzero(as_tuple=True)
+        self.register_buffer("hat_k", hk)
+        self.register_buffer("hat_n", hn)
+        self.register_buffer("hat_w", self.weights[hk, hn].clone())
+        if consistency != "frozen":
+            for prop in PROPS:
+                tail = getattr(deltas, prop).shape[2:]
+                shape = (len(hk), *tail) if self.weighted(prop) else (k, n, *tail)
+                self.register_parameter("hat_" + prop, nn.Parameter(torch.zeros(shape)))
         self.register_buffer("lbs_weights", avatar.lbs_weights.clone())
         self.register_buffer("joint_positions", avatar.joint_positions.clone())
         self.register_buffer("mouth_group", avatar.mouth_group.clone())
@@ -82,63 +105,130 @@ class TrainableAvatar(nn.Module):
         d = displacement_magnitudes(model, avatar.neutral.means)
         return cls(avatar, d, eps, d_max, consistency)
 
+    @classmethod
+    def from_state(cls, state: dict) -> TrainableAvatar:
+        """Rebuild from :meth:`state` (a checkpoint's): any N (densification changes it)."""
+        model = cls.__new__(cls)
+        nn.Module.__init__(model)
+        model.consistency = state["consistency"]
+        model.eps, model.d_max = float(state["eps"]), float(state["d_max"])
+        model.meta = dict(state["meta"])
+        params = set(state["parameters"])
+        for name, t in state["tensors"].items():
+            if name in ("pose_correctives", "eyelid_offsets"):
+                continue
+            if name in params:
+                model.register_parameter(name, nn.Parameter(t.clone()))
+            else:
+                model.register_buffer(name, t.clone())
+        model.pose_correctives = state["tensors"].get("pose_correctives")
+        model.eyelid_offsets = state["tensors"].get("eyelid_offsets")
+        return model
+
+    def state(self) -> dict:
+        """Everything needed to rebuild the model (tensors, numbers, strings: loadable with weights_only=True)."""
+        tensors = {k: v.detach().cpu() for k, v in self.named_parameters()}
+        tensors.update({k: v.detach().cpu() for k, v in self.named_buffers()})
+        if self.pose_correctives is not None:
+            tensors["pose_correctives"] = self.pose_correctives.cpu()
+        if self.eyelid_offsets is not None:
+            tensors["eyelid_offsets"] = self.eyelid_offsets.cpu()
+        return {"tensors": tensors, "parameters": [k for k, _ in self.named_parameters()],
+                "consistency": self.consistency, "eps": self.eps, "d_max": self.d_max, "meta": self.meta}
+
     # ------------------------------------------------------------------------------------------------ state
     @property
     def num_gaussians(self) -> int:
         return int(self.means.shape[0])
 
+    @property
+    def num_expressions(self) -> int:
+        return int(self.meta["num_expressions"])
+
     def weighted(self, prop: str) -> bool:
-        """Whether the residual of ``prop`` is multiplied by the consistency weights."""
+        """Whether the residual of ``prop`` is multiplied by the consistency weights (and stored sparse)."""
         return self.consistency == "all" or (self.consistency == "positions" and prop == "means")
 
     def hat(self, prop: str) -> Tensor | None:
         return getattr(self, "hat_" + prop, None)
 
-    def delta(self, prop: str, sh_coeffs: int | None = None) -> Tensor:
-        """The effective dG of ``prop`` [K, N, ...] (differentiable in dG_hat); SH cut to ``sh_coeffs``."""
-        init = getattr(self, "init_" + prop)
-        hat = self.hat(prop)
+    def _cut(self, t: Tensor, prop: str, sh_coeffs: int | None, dim: int) -> Tensor:
         if prop == "sh" and sh_coeffs is not None:
-            init = init[:, :, :sh_coeffs]
-            hat = None if hat is None else hat[:, :, :sh_coeffs]
-        if hat is None:
-            return init
-        if self.weighted(prop):
-            w = self.weights.reshape(*self.weights.shape, *([1] * (hat.dim() - 2)))
-            return init + w * hat
-        return init + hat
+            return t.narrow(dim, 0, sh_coeffs)
+        return t
 
-    def state_tensors(self) -> dict[str, Tensor]:
-        """Every tensor of the model (parameters, buffers and the optional constants), for checkpoints."""
-        out = {k: v.detach() for k, v in self.named_parameters()}
-        out.update({k: v for k, v in self.named_buffers()})
-        if self.pose_correctives is not None:
-            out["pose_correctives"] = self.pose_correctives
-        if self.eyelid_offsets is not None:
-            out["eyelid_offsets"] = self.eyelid_offsets
-        return out
+    def delta(self, prop: str, sh_coeffs: int | None = None) -> Tensor:
+        """The effective dG of ``prop``, dense [K, N, ...] (differentiable in dG_hat); SH cut to ``sh_coeffs``."""
+        init = self._cut(getattr(self, "init_" + prop), prop, sh_coeffs, 1)
+        k, n = self.num_expressions, self.num_gaussians
+        out = init.new_zeros(k, n, *init.shape[1:]).index_put((self.init_k, self.init_n), init)
+        hat = self.hat(prop)
+        if hat is None:
+            return out
+        if self.weighted(prop):
+            hat = self._cut(hat, prop, sh_coeffs, 1)
+            w = self.hat_w.reshape(-1, *([1] * (hat.dim() - 1)))
+            return out.index_put((self.hat_k, self.hat_n), w * hat, accumulate=True)
+        return out + self._cut(hat, prop, sh_coeffs, 2)
+
+    def blend(self, expression: Tensor, sh_degree: int | None = None) -> Gaussians:
+        """Eq. 1 with Eq. 2's deltas, sparse: B0 + sum_k psi_k (dG_init_k + c_k dG_hat_k), [B, N, ...] (raw:
+        quaternions unnormalised, log-scales, logits), SH cut to ``sh_degree``. Equal (to rounding) to
+        ``deform.blend(self.avatar(sh_degree), expression)`` without building the dense deltas."""
+        c = sh_coeff_count(self._degree(sh_degree))
+        psi = expression.to(self.means.dtype)
+        b = psi.shape[0]
+        neutral = self._neutral(c)
+        out = {}
+        for prop in PROPS:
+            base = getattr(neutral, prop)
+            tail = base.shape[1:]
+            ones = [1] * len(tail)
+            x = base.unsqueeze(0).expand(b, *base.shape)
+            init = self._cut(getattr(self, "init_" + prop), prop, c, 1)
+            if prop in ("means", "quats", "sh"):  # scale and opacity have no init term
+                x = torch.index_add(x, 1, self.init_n, psi[:, self.init_k].reshape(b, -1, *ones) * init)
+            hat = self.hat(prop)
+            if hat is not None and self.weighted(prop):
+                coef = psi[:, self.hat_k] * self.hat_w
+                x = torch.index_add(x, 1, self.hat_n, coef.reshape(b, -1, *ones) * self._cut(hat, prop, c, 1))
+            elif hat is not None:
+                flat = psi @ self._cut(hat, prop, c, 2).reshape(hat.shape[0], -1)
+                x = x + flat.reshape(b, *base.shape)
+            out[prop] = x
+        return Gaussians(**out)
 
     # ------------------------------------------------------------------------------------------------ views
-    def avatar(self, sh_degree: int | None = None, detach: bool = False) -> Avatar:
-        """The current avatar (differentiable unless ``detach``), its SH cut to ``sh_degree`` (default: all)."""
+    def _degree(self, sh_degree: int | None) -> int:
         full = self.meta["sh_degree"]
-        degree = full if sh_degree is None else min(sh_degree, full)
-        c = sh_coeff_count(degree)
+        return full if sh_degree is None else min(sh_degree, full)
 
+    def _neutral(self, c: int, prefix: str = "", detach: bool = False) -> Gaussians:
         def t(x: Tensor) -> Tensor:
             return x.detach() if detach else x
 
-        def sh(prefix: str) -> Tensor:
-            dc, rest = getattr(self, prefix + "sh_dc"), getattr(self, prefix + "sh_rest")
-            return t(dc) if c == 1 else t(torch.cat([dc, rest[:, : c - 1]], dim=1))
+        dc, rest = getattr(self, prefix + "sh_dc"), getattr(self, prefix + "sh_rest")
+        sh = t(dc) if c == 1 else t(torch.cat([dc, rest[:, : c - 1]], dim=1))
+        return Gaussians(t(getattr(self, prefix + "means")), t(getattr(self, prefix + "quats")),
+                         t(getattr(self, prefix + "log_scales")), t(getattr(self, prefix + "opacity_logits")), sh)
 
-        neutral = Gaussians(t(self.means), t(self.quats), t(self.log_scales), t(self.opacity_logits), sh(""))
-        mouth = Gaussians(t(self.mouth_means), t(self.mouth_quats), t(self.mouth_log_scales),
-                          t(self.mouth_opacity_logits), sh("mouth_"))
-        deltas = Gaussians(*(t(self.delta(p, c)) for p in PROPS))
+    def avatar(self, sh_degree: int | None = None, detach: bool = False, deltas: bool = True) -> Avatar:
+        """The current avatar (differentiable unless ``detach``), its SH cut to ``sh_degree`` (default: all).
+
+        ``deltas=False`` leaves the (costly) dense deltas out: zero-stride placeholders of the right shape, for
+        :func:`render_core.deform.skin` after :meth:`blend`."""
+        degree = self._degree(sh_degree)
+        c = sh_coeff_count(degree)
+        neutral = self._neutral(c, detach=detach)
+        mouth = self._neutral(c, "mouth_", detach=detach)
+        k = self.num_expressions
+        if deltas:
+            d = Gaussians(*((self.delta(p, c).detach() if detach else self.delta(p, c)) for p in PROPS))
+        else:
+            d = neutral.map(lambda x: x.detach().new_zeros(()).expand(k, *x.shape))
         m = self.meta
         return Avatar(
-            neutral=neutral, deltas=deltas, lbs_weights=self.lbs_weights, joint_positions=self.joint_positions,
+            neutral=neutral, deltas=d, lbs_weights=self.lbs_weights, joint_positions=self.joint_positions,
             joint_names=list(m["joint_names"]), joint_parents=list(m["joint_parents"]),
             expression_names=list(m["expression_names"]), mouth=mouth, mouth_group=self.mouth_group,
             mouth_joint_names=tuple(m["mouth_joint_names"]), pose_correctives=self.pose_correctives,
@@ -151,8 +241,9 @@ class TrainableAvatar(nn.Module):
         """A plain :class:`Avatar` (deltas = the effective dG, full SH degree), detached, float32, on the CPU."""
         with torch.no_grad():
             av = self.avatar(detach=True).to(torch.float32, "cpu")
-        av = replace(av, neutral=av.neutral.map(torch.Tensor.clone), deltas=av.deltas.map(torch.Tensor.clone),
-                     mouth=av.mouth.map(torch.Tensor.clone))
+        av = replace(av, neutral=av.neutral.map(torch.Tensor.clone), mouth=av.mouth.map(torch.Tensor.clone),
+                     lbs_weights=av.lbs_weights.clone(), joint_positions=av.joint_positions.clone(),
+                     mouth_group=av.mouth_group.clone())
         if provenance:
             av.provenance = {**av.provenance, **provenance}
         av.validate()
