@@ -35,6 +35,28 @@ CONSISTENCY = ("all", "positions", "none", "frozen")
 PROPS = ("means", "quats", "log_scales", "opacity_logits", "sh")
 
 
+class _AddRows(torch.autograd.Function):
+    """x.index_add(0, index, src) whose backward gathers with advanced indexing (several times faster on the CPU
+    than index_select, which the built-in backward uses)."""
+
+    @staticmethod
+    def forward(ctx, x: Tensor, index: Tensor, src: Tensor) -> Tensor:
+        ctx.save_for_backward(index)
+        return torch.index_add(x, 0, index, src)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad: Tensor):
+        (index,) = ctx.saved_tensors
+        grad_src = grad[index] if ctx.needs_input_grad[2] else None
+        return grad if ctx.needs_input_grad[0] else None, None, grad_src
+
+
+def add_rows(x: Tensor, index: Tensor, src: Tensor) -> Tensor:
+    """``torch.index_add(x, 0, index, src)`` (out of place, differentiable in x and src)."""
+    return _AddRows.apply(x, index, src)
+
+
 class TrainableAvatar(nn.Module):
     """Parameters (nn.Parameter) and constants (buffers) of an avatar being trained.
 
@@ -177,22 +199,27 @@ class TrainableAvatar(nn.Module):
         ``deform.blend(self.avatar(sh_degree), expression)`` without building the dense deltas."""
         c = sh_coeff_count(self._degree(sh_degree))
         psi = expression.to(self.means.dtype)
-        b = psi.shape[0]
+        b, n = psi.shape[0], self.num_gaussians
         neutral = self._neutral(c)
+        init_coef = psi[:, self.init_k].t()  # [Pi, B]
+        hat_coef = (psi[:, self.hat_k] * self.hat_w).t() if self.consistency != "frozen" else None  # [Ph, B]
         out = {}
         for prop in PROPS:
             base = getattr(neutral, prop)
             tail = base.shape[1:]
             ones = [1] * len(tail)
-            x = base.unsqueeze(0).expand(b, *base.shape)
-            init = self._cut(getattr(self, "init_" + prop), prop, c, 1)
+            # Work on [N, B * D] rows: index_add along dim 0 of a 2-D tensor is the fast path on the CPU.
+            x = base.unsqueeze(1).expand(n, b, *tail).reshape(n, -1)
             if prop in ("means", "quats", "sh"):  # scale and opacity have no init term
-                x = torch.index_add(x, 1, self.init_n, psi[:, self.init_k].reshape(b, -1, *ones) * init)
+                init = self._cut(getattr(self, "init_" + prop), prop, c, 1)
+                src = init_coef.reshape(-1, b, *ones) * init.unsqueeze(1)
+                x = add_rows(x, self.init_n, src.reshape(src.shape[0], -1))
             hat = self.hat(prop)
             if hat is not None and self.weighted(prop):
-                coef = psi[:, self.hat_k] * self.hat_w
-                x = torch.index_add(x, 1, self.hat_n, coef.reshape(b, -1, *ones) * self._cut(hat, prop, c, 1))
-            elif hat is not None:
+                src = hat_coef.reshape(-1, b, *ones) * self._cut(hat, prop, c, 1).unsqueeze(1)
+                x = add_rows(x, self.hat_n, src.reshape(src.shape[0], -1))
+            x = x.reshape(n, b, *tail).movedim(1, 0)
+            if hat is not None and not self.weighted(prop):
                 flat = psi @ self._cut(hat, prop, c, 2).reshape(hat.shape[0], -1)
                 x = x + flat.reshape(b, *base.shape)
             out[prop] = x
