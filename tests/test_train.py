@@ -170,6 +170,47 @@ def test_sparse_blend_equals_the_dense_blend(small, head, consistency):
             torch.testing.assert_close(getattr(got, key), getattr(want, key), atol=1e-6, rtol=1e-5)
 
 
+def test_densify_reindex_copies_blendshape_entries(small, head):
+    from render_core.train.densify import reindex
+
+    for mode in ("all", "none"):
+        model = TrainableAvatar.from_facemodel(small, head, mode)
+        g = torch.Generator().manual_seed(5)
+        with torch.no_grad():
+            for name, p in model.named_parameters():
+                if name.startswith("hat_"):
+                    p.copy_(0.01 * torch.randn(p.shape, generator=g))
+        opt = make_optimizer(model, TOY)
+        for p in model.parameters():
+            p.grad = torch.randn(p.shape, generator=g)
+        opt.step()
+        psi = torch.rand(1, small.num_expressions, generator=g)
+        with torch.no_grad():
+            before = model.blend(psi)
+        old_hat = model.hat_means.detach().clone()
+        old_state = {k: v.clone() for k, v in opt.state[model.hat_means].items()}
+        n = model.num_gaussians
+        src = torch.cat([torch.arange(0, n, 2), torch.tensor([1, 1, 7])])  # drop odd ones, three copies
+        fresh = torch.zeros(len(src), dtype=torch.bool)
+        fresh[-3:] = True
+        reindex(model, opt, src, fresh)
+        assert model.num_gaussians == len(src) and model.d.shape == (small.num_expressions, len(src))
+        with torch.no_grad():
+            after = model.blend(psi)
+        for key in ("means", "quats", "log_scales", "opacity_logits", "sh"):
+            torch.testing.assert_close(getattr(after, key), getattr(before, key)[:, src], atol=1e-6, rtol=1e-5)
+        state = opt.state[model.hat_means]
+        assert {g["params"][0] for g in opt.param_groups} == set(model.parameters())
+        if mode == "none":  # dense rows: survivors keep their moments, children start at zero
+            torch.testing.assert_close(model.hat_means.detach(), old_hat[:, src])
+            torch.testing.assert_close(state["exp_avg"][:, :-3], old_state["exp_avg"][:, src[:-3]])
+            assert float(state["exp_avg"][:, -3:].abs().sum()) == 0
+        else:  # pairs: one per (child, parent pair); c carried along
+            assert len(model.hat_n) == int((model.weights > 0).sum())
+            torch.testing.assert_close(model.hat_w, model.weights[model.hat_k, model.hat_n])
+        opt.step()  # the optimizer still runs on the new parameters
+
+
 # ----------------------------------------------------------------------------------------------------- losses
 def test_ssim_and_mouth_cylinder():
     g = torch.Generator().manual_seed(0)
@@ -212,7 +253,9 @@ def test_bundle_renders_the_recorded_psnr(trained, toy):
 
 
 def test_resume_equals_an_uninterrupted_run(toy, head, tmp_path):
-    cfg = TOY.with_(checkpoint_every=3, sh_every=2)
+    # Densification at iterations 2, 4 and 6 (splits draw from the generator), a checkpoint at 3.
+    cfg = TOY.with_(checkpoint_every=3, sh_every=2, densify_from=1, densify_every=2, densify_until=6,
+                    densify_grad=2e-4)
     straight = train(toy, tmp_path / "a.bsplat", workdir=tmp_path / "a", preset=cfg, iterations=6, progress=False,
                      facemodel=head, seed=3)
     part = train(toy, tmp_path / "b.bsplat", workdir=tmp_path / "b", preset=cfg, iterations=6, progress=False,
@@ -221,6 +264,7 @@ def test_resume_equals_an_uninterrupted_run(toy, head, tmp_path):
     resumed = train(toy, tmp_path / "b.bsplat", workdir=tmp_path / "b", preset=cfg, iterations=6, progress=False,
                     facemodel=head, resume=True)
     assert resumed["resumed_from"] == 3 and resumed["iterations"] == 6
+    assert straight["gaussians"] > TOY.gaussians and straight["gaussians"] == resumed["gaussians"]
     a = load_checkpoint(tmp_path / "a" / "checkpoints" / "ckpt_0000006.pt")
     b = load_checkpoint(tmp_path / "b" / "checkpoints" / "ckpt_0000006.pt")
     ta, tb = a["model"]["tensors"], b["model"]["tensors"]

@@ -34,6 +34,7 @@ from ..facemodel import FaceModel, read_facemodel
 from ..initialize import init_avatar
 from ..raster import native
 from . import losses
+from .densify import Densifier
 from .model import TrainableAvatar
 from .presets import Preset, get_preset
 
@@ -41,7 +42,7 @@ log = logging.getLogger(__name__)
 
 CHECKPOINT_FORMAT = "blendsplat-train-checkpoint"
 CHECKPOINT_VERSION = 1
-STAGES = ("data", "blend", "skin", "shade", "raster", "loss", "backward", "optimizer")
+STAGES = ("data", "blend", "skin", "shade", "raster", "loss", "backward", "optimizer", "densify")
 
 
 # ------------------------------------------------------------------------------------------------- helpers
@@ -121,14 +122,20 @@ def optimizer_kind(opt: torch.optim.Optimizer) -> str:
 
 
 def forward(model: TrainableAvatar, frame: Frame, cameras: Cameras, sh_degree: int | None = None,
-            threads: int = 0, times: dict | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-    """Render B frames of the model (differentiable): rgb [B, H, W, 3], alpha [B, H, W] on a black background."""
+            threads: int = 0, times: dict | None = None,
+            capture: dict | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Render B frames of the model (differentiable): rgb [B, H, W, 3], alpha [B, H, W] on a black background.
+
+    ``capture``: receives the posed centres ("means", [B, N + M, 3], their gradient kept) for densification."""
     clock = time.perf_counter
     t0 = clock()
     avatar = model.avatar(sh_degree, deltas=False)
     blended = model.blend(frame.expression, sh_degree)
     t1 = clock()
     splats = skin(avatar, blended, frame)
+    if capture is not None and splats.means.requires_grad:
+        splats.means.retain_grad()
+        capture["means"] = splats.means
     t2 = clock()
     colors = shade(splats, cameras.centres.to(splats.means))
     t3 = clock()
@@ -174,13 +181,13 @@ def last_checkpoint(workdir: Path) -> Path | None:
 
 def save_checkpoint(path: Path, *, iteration: int, model: TrainableAvatar, opt: torch.optim.Optimizer,
                     gen: torch.Generator, preset: Preset, cylinder: losses.MouthCylinder, seed: int,
-                    seconds: float, keep: int = 2) -> Path:
+                    seconds: float, densifier: Densifier, keep: int = 2) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     state = {
         "format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "iteration": iteration,
         "model": model.state(),
         "optimizer": opt.state_dict(), "rng": gen.get_state(), "preset": preset.to_dict(),
-        "cylinder": cylinder.to_dict(), "seed": seed, "seconds": seconds,
+        "cylinder": cylinder.to_dict(), "seed": seed, "seconds": seconds, "densifier": densifier.state(),
     }
     tmp = path.with_suffix(".tmp")
     torch.save(state, tmp)
@@ -274,6 +281,8 @@ def train(
         model = TrainableAvatar.from_facemodel(init, fm, cfg.consistency)
         cylinder = losses.MouthCylinder.from_points(init.mouth.means)
         gen = torch.Generator().manual_seed(seed)
+        x = init.neutral.means
+        densifier = Densifier(model.num_gaussians, float((x - x.mean(0)).norm(dim=1).max()))
         start = 0
         prior_seconds = 0.0
         (workdir / "log.jsonl").write_text("")
@@ -282,6 +291,7 @@ def train(
         cylinder = losses.MouthCylinder.from_dict(state["cylinder"])
         gen = torch.Generator()
         gen.set_state(state["rng"])
+        densifier = Densifier.from_state(state["densifier"])
         start = int(state["iteration"])
         prior_seconds = float(state["seconds"])
         _truncate_log(workdir / "log.jsonl", start)
@@ -302,6 +312,7 @@ def train(
     end = total if stop_after is None else min(total, int(stop_after))
     times: dict[str, float] = defaultdict(float)
     history: list[dict] = []
+    densified: list[dict] = []
     bar = None
     if progress:
         from tqdm import tqdm
@@ -322,7 +333,9 @@ def train(
                 if g["name"] in ("means", "mouth_means"):
                     g["lr"] = xyz_lr(cfg, it)
             times["data"] += clock() - t0
-            rgb, alpha = forward(model, frame, cams, degree, cfg.threads, times)
+            stats = cfg.densify and it <= cfg.densify_until
+            capture: dict | None = {} if stats else None
+            rgb, alpha = forward(model, frame, cams, degree, cfg.threads, times, capture)
             t1 = clock()
             loss, terms = losses.total_loss(rgb, alpha, rgb_t, mask_t, model.mouth_means, cylinder)
             t2 = clock()
@@ -334,10 +347,22 @@ def train(
             times["loss"] += t2 - t1
             times["backward"] += t3 - t2
             times["optimizer"] += t4 - t3
+            if stats:
+                n = model.num_gaussians
+                posed = capture["means"]
+                densifier.accumulate(posed[0, :n].detach(), posed.grad[0, :n], cams)
+                if cfg.densify_from < it and it % cfg.densify_every == 0:
+                    counts = densifier.step(model, opt, gen, cfg.densify_grad, cfg.prune_opacity, cfg.max_gaussians,
+                                            prune_big=it > cfg.prune_big_after)
+                    log.info("iteration %d: %s", it, counts)
+                    densified.append({"iteration": it, **counts})
+                capture = posed = None
+            times["densify"] += clock() - t4
             if it % cfg.log_every == 0 or it == end or it == 1:
                 vals = {k: float(v.detach()) for k, v in terms.items()}
                 rec = {"iteration": it, "loss": float(loss.detach()), **vals,
                        "psnr": losses.psnr(rgb, rgb_t), "frame": int(train_idx[j]), "sh_degree": degree,
+                       "gaussians": model.num_gaussians,
                        "seconds": round(prior_seconds + clock() - run_start, 3)}
                 history.append(rec)
                 logf.write(json.dumps(rec) + "\n")
@@ -349,7 +374,7 @@ def train(
             if it % cfg.checkpoint_every == 0 or it == end:
                 save_checkpoint(checkpoint_dir(workdir) / f"ckpt_{it:07d}.pt", iteration=it, model=model, opt=opt,
                                 gen=gen, preset=cfg, cylinder=cylinder, seed=seed,
-                                seconds=prior_seconds + clock() - run_start)
+                                seconds=prior_seconds + clock() - run_start, densifier=densifier)
     finally:
         logf.close()
         if bar is not None:
@@ -366,6 +391,7 @@ def train(
         "ms_per_iteration": round(1e3 * run_seconds / done, 2) if done else None,
         "stage_ms": {s: round(1e3 * times[s] / done, 2) for s in STAGES} if done else {},
         "first": history[0] if history else None, "last": history[-1] if history else None,
+        "densified": densified,
     }
     if end < total:  # interrupted on purpose: no bundle
         summary["bundle"] = None

@@ -29,12 +29,15 @@ class Preset:
     lr_hat_scale: float = 5e-4
     lr_hat_rotation: float = 1e-4
     lr_hat_sh: float = 1.25e-3
-    # Densification (not implemented yet: recorded for the paper preset).
+    # Densification and pruning (:mod:`.densify`).
+    densify: bool = True
+    max_gaussians: int = 200_000
     densify_from: int = 500
     densify_until: int = 15_000
     densify_every: int = 100
     densify_grad: float = 1e-3
     prune_opacity: float = 0.005
+    prune_big_after: int = 3000  # world-size pruning (> 0.1 x extent) only after this iteration (3DGS)
     # Bookkeeping.
     checkpoint_every: int = 1000
     log_every: int = 10
@@ -50,9 +53,10 @@ class Preset:
 
 
 PRESETS: dict[str, Preset] = {
-    # A few minutes on a 2-core CPU at 256 x 256: 20k Gaussians, the xyz decay over the run, SH ramp every 300.
+    # A few minutes on a 2-core CPU at 256 x 256: 20k Gaussians (densified up to 30k), the xyz decay over the run,
+    # SH ramp every 300.
     "tiny": Preset(name="tiny", iterations=3000, gaussians=20_000, mouth=2_000, sh_every=300, xyz_decay_steps=3000,
-                   checkpoint_every=500, log_every=10),
+                   densify_from=500, densify_until=2000, max_gaussians=30_000, checkpoint_every=500, log_every=10),
     # The paper's numbers: 40k iterations, 50k face Gaussians, 2 x 5k mouth Gaussians (reference code).
     "paper": Preset(name="paper", iterations=40_000, gaussians=50_000, mouth=10_000, sh_every=1000,
                     xyz_decay_steps=30_000, checkpoint_every=5000, log_every=50),

@@ -1,0 +1,185 @@
+"""Densification and pruning (METHOD.md section 6) with blendshape entries copied to children.
+
+Statistics: after each backward, the view-space positional gradient of every face Gaussian, in gsplat's /
+3DGS's normalised units (the pixel-space gradient of the projected centre times (W/2, H/2)), recovered from the
+gradient of the posed world-space centre through the pinhole model (dL/du = dL/dx_cam * z / f; the small part of
+the gradient that flows through the covariance's dependence on the centre is not separated out). The norm is
+accumulated for every Gaussian with a non-zero gradient (the visible ones).
+
+Every ``densify_every`` iterations in [densify_from, densify_until]:
+- Gaussians with a mean accumulated gradient >= ``densify_grad``: cloned (an exact copy) if their largest scale is
+  <= ``percent_dense`` x the scene extent, else split into two children sampled from the parent's Gaussian with
+  scales / 1.6 (the parent is removed);
+- pruned: neutral opacity < ``prune_opacity``, and after ``prune_big_after`` iterations (3DGS: 3000) also a largest
+  scale > 0.1 x extent (screen radius > 20 px is not tested: the rasterizer does not return radii);
+- capped at ``max_gaussians`` (the largest gradients first).
+Children copy their parent's blendshape entries (dG_init pairs, dG_hat pairs or rows, d, c, LBS weights, pose
+correctives, eyelid offsets); their Adam moments start at zero, survivors keep theirs. The mouth interior is not
+densified. The scene extent is the largest distance of the initial face Gaussians from their centroid.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+from ..camera import Cameras
+from ..rotation import quat_to_matrix
+from .model import PROPS, TrainableAvatar
+
+PERCENT_DENSE = 0.01
+SPLIT_SCALE = 1.6
+
+
+class Densifier:
+    """Gradient statistics and the densify/prune step."""
+
+    def __init__(self, n: int, extent: float):
+        self.extent = float(extent)
+        self.grad_accum = torch.zeros(n)
+        self.denom = torch.zeros(n)
+
+    def state(self) -> dict:
+        return {"extent": self.extent, "grad_accum": self.grad_accum.clone(), "denom": self.denom.clone()}
+
+    @classmethod
+    def from_state(cls, state: dict) -> Densifier:
+        d = cls(0, state["extent"])
+        d.grad_accum, d.denom = state["grad_accum"].clone(), state["denom"].clone()
+        return d
+
+    def accumulate(self, posed_means: Tensor, grad: Tensor, cameras: Cameras) -> None:
+        """Add one frame's view-space gradient norms (``posed_means``/``grad``: [N, 3] world-space face Gaussians)."""
+        R, t, K = cameras.R[0].to(grad), cameras.t[0].to(grad), cameras.K[0].to(grad)
+        z = (posed_means.detach() @ R[2]) + t[2]
+        g_cam = grad @ R.T
+        gu = g_cam[:, 0] * z / K[0, 0] * (cameras.width / 2)
+        gv = g_cam[:, 1] * z / K[1, 1] * (cameras.height / 2)
+        norm = torch.sqrt(gu * gu + gv * gv)
+        visible = grad.abs().sum(1) > 0
+        self.grad_accum += torch.where(visible, norm, 0.0)
+        self.denom += visible.to(self.denom.dtype)
+
+    def step(self, model: TrainableAvatar, opt: torch.optim.Optimizer, gen: torch.Generator, grad_threshold: float,
+             prune_opacity: float, max_gaussians: int, prune_big: bool = False) -> dict:
+        """Densify and prune; returns counts (cloned, split, pruned, gaussians)."""
+        n = model.num_gaussians
+        avg = self.grad_accum / self.denom.clamp_min(1)
+        with torch.no_grad():
+            scale = model.log_scales.detach().exp().amax(1)
+            prune = torch.sigmoid(model.opacity_logits.detach()) < prune_opacity
+            if prune_big:
+                prune |= scale > 0.1 * self.extent
+            chosen = (avg >= grad_threshold) & ~prune
+            room = max(max_gaussians - int((~prune).sum()), 0)
+            big = scale > PERCENT_DENSE * self.extent
+            # Each clone adds one Gaussian, each split one net (two children replace the parent).
+            if int(chosen.sum()) > room:
+                order = torch.argsort(torch.where(chosen, avg, -1.0), descending=True, stable=True)
+                keep_chosen = torch.zeros(n, dtype=torch.bool)
+                keep_chosen[order[:room]] = True
+                chosen &= keep_chosen
+            clone = chosen & ~big
+            split = chosen & big
+            keep = ~prune & ~split
+            keep_idx, clone_idx, split_idx = (m.nonzero().flatten() for m in (keep, clone, split))
+            src = torch.cat([keep_idx, clone_idx, split_idx, split_idx])
+            fresh = torch.cat([torch.zeros(len(keep_idx), dtype=torch.bool),
+                               torch.ones(len(clone_idx) + 2 * len(split_idx), dtype=torch.bool)])
+            updates = {}
+            if len(split_idx):
+                s = model.log_scales.detach()[split_idx].exp()
+                rot = quat_to_matrix(torch.nn.functional.normalize(model.quats.detach()[split_idx], dim=-1))
+                samples = torch.randn(2, len(split_idx), 3, generator=gen) * s
+                offsets = (rot @ samples.unsqueeze(-1)).squeeze(-1)  # [2, S, 3]
+                means = model.means.detach()
+                children = means[split_idx].unsqueeze(0) + offsets
+                start = len(keep_idx) + len(clone_idx)
+                new_means = means[src].clone()
+                new_means[start:] = children.reshape(-1, 3)
+                new_scales = model.log_scales.detach()[src].clone()
+                new_scales[start:] = torch.log(s / SPLIT_SCALE).repeat(2, 1)
+                updates = {"means": new_means, "log_scales": new_scales}
+            reindex(model, opt, src, fresh, updates)
+        self.grad_accum = torch.zeros(model.num_gaussians)
+        self.denom = torch.zeros(model.num_gaussians)
+        return {"cloned": len(clone_idx), "split": len(split_idx), "pruned": int(prune.sum()),
+                "gaussians": model.num_gaussians}
+
+
+def _expand_pairs(pair_n: Tensor, src: Tensor, n_old: int) -> tuple[Tensor, Tensor]:
+    """Pairs of the old Gaussians -> pairs of the new ones: (index of the old pair [P'], new Gaussian [P'])."""
+    order = torch.argsort(src, stable=True)  # new Gaussians grouped by parent
+    count = torch.bincount(src, minlength=n_old)
+    start = torch.cumsum(count, 0) - count
+    rep = count[pair_n]
+    old_pair = torch.repeat_interleave(torch.arange(len(pair_n)), rep)
+    offset = torch.arange(len(old_pair)) - torch.repeat_interleave(torch.cumsum(rep, 0) - rep, rep)
+    child = order[start[pair_n[old_pair]] + offset]
+    return old_pair, child
+
+
+def reindex(model: TrainableAvatar, opt: torch.optim.Optimizer, src: Tensor, fresh: Tensor,
+            updates: dict[str, Tensor] | None = None) -> None:
+    """Replace the face Gaussians by ``src`` (new Gaussian j is a copy of old Gaussian src[j]), carrying every
+    per-Gaussian tensor, the (Gaussian, blendshape) pairs and the Adam moments (zero where ``fresh``)."""
+    updates = updates or {}
+    n_old = model.num_gaussians
+    init_pair, init_child = _expand_pairs(model.init_n, src, n_old)
+    hat_pair, hat_child = _expand_pairs(model.hat_n, src, n_old)
+    hat_fresh = fresh[hat_child]
+
+    # How each tensor is re-indexed: ("rows", dim) for per-Gaussian tensors, "init"/"hat" for pair tensors.
+    plan: dict[str, tuple] = {}
+    for name in ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest"):
+        plan[name] = ("rows", 0)
+    for name in ("d", "weights"):
+        plan[name] = ("rows", 1)
+    plan["lbs_weights"] = ("rows", 0)
+    for prop in PROPS:
+        plan["init_" + prop] = ("init",)
+        hat = model.hat(prop)
+        if hat is not None:
+            plan["hat_" + prop] = ("hat",) if model.weighted(prop) else ("rows", 1)
+    plan["init_k"] = ("init",)
+    plan["hat_k"] = ("hat",)
+    plan["hat_w"] = ("hat",)
+
+    def apply(name: str, t: Tensor, moment: bool = False) -> Tensor:
+        how = plan[name]
+        if how[0] == "rows":
+            out = t.index_select(how[1], src)
+            if moment:
+                shape = [1] * out.dim()
+                shape[how[1]] = -1
+                out = out * (~fresh).reshape(shape).to(out.dtype)
+            return out
+        if how[0] == "init":
+            return t[init_pair]
+        out = t[hat_pair]
+        if moment:
+            out = out * (~hat_fresh).reshape(-1, *([1] * (out.dim() - 1))).to(out.dtype)
+        return out
+
+    params = dict(model.named_parameters())
+    by_param = {id(g["params"][0]): g for g in opt.param_groups}
+    for name in plan:
+        if name in params:
+            old = params[name]
+            new = nn.Parameter(updates[name] if name in updates else apply(name, old.detach()))
+            group = by_param.get(id(old))
+            if group is not None:
+                state = opt.state.pop(old, None)
+                if state:
+                    opt.state[new] = {k: (apply(name, v, moment=True) if k in ("exp_avg", "exp_avg_sq") else v)
+                                      for k, v in state.items()}
+                group["params"][0] = new
+            setattr(model, name, new)
+        else:
+            model.register_buffer(name, apply(name, getattr(model, name)))
+    model.register_buffer("init_n", init_child)
+    model.register_buffer("hat_n", hat_child)
+    if model.pose_correctives is not None:
+        model.pose_correctives = model.pose_correctives.index_select(1, src)
+    if model.eyelid_offsets is not None:
+        model.eyelid_offsets = model.eyelid_offsets.index_select(1, src)
