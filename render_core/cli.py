@@ -182,6 +182,16 @@ def cmd_data_validate(args: argparse.Namespace) -> int:
     return run_validate(args.dir, as_json=args.json)
 
 
+def cmd_train(args: argparse.Namespace) -> int:
+    from .train.loop import train
+
+    summary = train(args.data, args.out, workdir=args.workdir, preset=args.preset, device=args.device,
+                    resume=args.resume, seed=args.seed, iterations=args.iterations, progress=not args.quiet,
+                    consistency=args.consistency)
+    _emit(summary)
+    return 0
+
+
 def cmd_eval(args: argparse.Namespace) -> int:
     from .evaluate import run_eval
 
@@ -293,6 +303,21 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--trusted", action="store_true",
                    help="allow full unpickling of .frame files that need it (never for data from others)")
     s.set_defaults(fn=cmd_data_convert)
+
+    t = sub.add_parser("train", help="learn a Gaussian blendshape avatar from a tracked video (portable format)")
+    t.add_argument("data", type=Path, help="the dataset folder (docs/tracked-video-format.md)")
+    t.add_argument("--out", required=True, type=Path, help="the bundle to write")
+    t.add_argument("--workdir", type=Path, default=None,
+                   help="checkpoints, log, report and plots (default: beside the bundle)")
+    t.add_argument("--preset", choices=("tiny", "paper"), default="tiny")
+    t.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
+    t.add_argument("--resume", action="store_true", help="continue from the workdir's last checkpoint")
+    t.add_argument("--iterations", type=int, default=None, help="override the preset's iteration count")
+    t.add_argument("--consistency", choices=("all", "positions", "none", "frozen"), default=None,
+                   help="blendshape consistency (Eq. 2) and the paper's ablations (default: the preset's, all)")
+    t.add_argument("--seed", type=int, default=0)
+    t.add_argument("--quiet", action="store_true", help="no progress bar")
+    t.set_defaults(fn=cmd_train)
 
     e = sub.add_parser("eval", help="PSNR, SSIM and head-mask PSNR of a bundle on a dataset's held-out frames "
                                     "(ground-truth background masked to black)")
