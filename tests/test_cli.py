@@ -187,3 +187,20 @@ def test_eval_cli_prints_the_metrics(tmp_path, head, capsys):
     assert main(["eval", "--bundle", str(tmp_path / "a.bundle"), "--data", str(tmp_path / "ds"), "--json"]) == 0
     report = json.loads(capsys.readouterr().out)
     assert {"psnr", "ssim", "psnr_head", "frames"} <= set(report) and report["frames"] == 1
+
+
+def test_train_cli_writes_a_bundle_and_its_workdir(tmp_path, head, capsys, monkeypatch):
+    import json
+
+    from render_core.bundle import read_bundle
+    from render_core.data.generate import synth_dataset
+    from render_core.facemodel.open_head import open_head
+    from service.cli import main
+
+    open_head(tmp_path / "data" / "facemodels")  # the cache the trainer finds under $BLENDSPLAT_DATA_DIR
+    monkeypatch.setenv("BLENDSPLAT_DATA_DIR", str(tmp_path / "data"))
+    synth_dataset(tmp_path / "ds", frames=5, size=32, seed=1, facemodel=head)
+    out = tmp_path / "a.bundle"
+    assert main(["train", str(tmp_path / "ds"), "--out", str(out), "--iterations", "2", "--quiet"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["bundle"] == str(out) and read_bundle(out).expression_names == head.expression_names
