@@ -280,6 +280,11 @@ def test_resume_equals_an_uninterrupted_run(toy, head, tmp_path):
     log_b = [json.loads(s)["loss"] for s in (tmp_path / "b" / "log.jsonl").read_text().splitlines()]
     assert log_a == log_b
     assert straight["final"]["psnr"] == resumed["final"]["psnr"]
+    # A fresh run in a used workdir starts over (the old checkpoints go).
+    again = train(toy, tmp_path / "b.bsplat", workdir=tmp_path / "b", preset=cfg, iterations=2, progress=False,
+                  facemodel=head, seed=3)
+    assert again["resumed_from"] is None
+    assert [p.name for p in sorted((tmp_path / "b" / "checkpoints").glob("*.pt"))] == ["ckpt_0000002.pt"]
 
 
 def test_unknown_face_model_is_an_error_naming_what_to_pass(toy, tmp_path):

@@ -286,6 +286,8 @@ def train(
         start = 0
         prior_seconds = 0.0
         (workdir / "log.jsonl").write_text("")
+        for old in checkpoint_dir(workdir).glob("ckpt_*.pt"):  # a fresh run: an older run's are stale
+            old.unlink()
     else:
         model = TrainableAvatar.from_state(state["model"])
         cylinder = losses.MouthCylinder.from_dict(state["cylinder"])
