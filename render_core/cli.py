@@ -184,8 +184,14 @@ def cmd_data_validate(args: argparse.Namespace) -> int:
 
 def cmd_train(args: argparse.Namespace) -> int:
     from .train.loop import train
+    from .train.presets import PRESETS
 
-    summary = train(args.data, args.out, workdir=args.workdir, preset=args.preset, device=args.device,
+    preset = PRESETS[args.preset]
+    if args.gaussians:
+        preset = preset.with_(gaussians=args.gaussians, mouth=max(2, min(preset.mouth, args.gaussians // 10)),
+                              max_gaussians=max(args.gaussians, preset.max_gaussians * args.gaussians
+                                                // preset.gaussians))
+    summary = train(args.data, args.out, workdir=args.workdir, preset=preset, device=args.device,
                     resume=args.resume, seed=args.seed, iterations=args.iterations, progress=not args.quiet,
                     consistency=args.consistency)
     _emit(summary)
@@ -313,6 +319,7 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
     t.add_argument("--resume", action="store_true", help="continue from the workdir's last checkpoint")
     t.add_argument("--iterations", type=int, default=None, help="override the preset's iteration count")
+    t.add_argument("--gaussians", type=int, default=None, help="override the preset's initial face Gaussians")
     t.add_argument("--consistency", choices=("all", "positions", "none", "frozen"), default=None,
                    help="blendshape consistency (Eq. 2) and the paper's ablations (default: the preset's, all)")
     t.add_argument("--seed", type=int, default=0)

@@ -68,16 +68,17 @@ def _tangent_frames(tri: Tensor) -> tuple[Tensor, Tensor]:
     return torch.stack([t, b, n], dim=2), n
 
 
-def _deformation_rotations(rest: Tensor, posed: Tensor) -> Tensor:
-    """Rotation part of each triangle's deformation gradient rest -> posed ([F, 3, 3] each side)."""
+def _edge_frames(tri: Tensor) -> Tensor:
+    """[F, 3, 3] with columns (e1, e2, n / sqrt|n|): the triangle frames of deformation transfer (the fourth
+    vertex along the normal scaled so that the frame changes as the triangle's size does)."""
+    e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+    nrm = torch.linalg.cross(e1, e2)
+    e3 = nrm / nrm.norm(dim=1, keepdim=True).clamp_min(1e-20).sqrt()
+    return torch.stack([e1, e2, e3], dim=2)
 
-    def frame(tri: Tensor) -> Tensor:
-        e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
-        nrm = torch.linalg.cross(e1, e2)
-        e3 = nrm / nrm.norm(dim=1, keepdim=True).clamp_min(1e-20).sqrt()
-        return torch.stack([e1, e2, e3], dim=2)
 
-    f = frame(posed) @ torch.linalg.inv(frame(rest))
+def _polar_rotation(f: Tensor) -> Tensor:
+    """The rotation of the polar decomposition of each [.., 3, 3] deformation gradient (via SVD, det +1)."""
     u, _, vh = torch.linalg.svd(f)
     d = torch.sign(torch.linalg.det(u @ vh))
     u = torch.cat([u[..., :2], u[..., 2:] * d[:, None, None]], dim=2)
@@ -126,13 +127,17 @@ def init_avatar(
     d_means = torch.zeros(k, gaussians, 3)
     d_quats = torch.zeros(k, gaussians, 4)
     d_sh = torch.zeros(k, gaussians, c, 3)
-    rest_tri = verts[faces]
+    used, slot = torch.unique(tri_idx, return_inverse=True)  # the triangles Gaussians sit on
+    rest_frames_inv = torch.linalg.inv(_edge_frames(verts[faces[used]]))
     for i in range(k):
         disp = model.expression_basis[i].double()
-        moved_tri = (disp[faces].abs().amax(dim=(1, 2)) > 0)[tri_idx]  # Gaussians on triangles this target moves
+        moved = disp[faces[used]].abs().amax(dim=(1, 2)) > 0  # used triangles this target moves
+        moved_tri = moved[slot]  # per Gaussian
         if not bool(moved_tri.any()):
             continue
-        rot = _deformation_rotations(rest_tri, (verts + disp)[faces])[tri_idx].float()  # [N, 3, 3]
+        rot_used = torch.eye(3, dtype=torch.float64).expand(len(used), 3, 3).clone()
+        rot_used[moved] = _polar_rotation(_edge_frames((verts + disp)[faces[used[moved]]]) @ rest_frames_inv[moved])
+        rot = rot_used[slot].float()  # [N, 3, 3]
         d_means[i] = interp(disp).float() * moved_tri[:, None]
         qk = quat_multiply(matrix_to_quat(rot), q0)
         qk = torch.where((qk * q0).sum(-1, keepdim=True) < 0, -qk, qk)  # the same hemisphere as q0

@@ -201,6 +201,7 @@ def test_train_cli_writes_a_bundle_and_its_workdir(tmp_path, head, capsys, monke
     monkeypatch.setenv("BLENDSPLAT_DATA_DIR", str(tmp_path / "data"))
     synth_dataset(tmp_path / "ds", frames=5, size=32, seed=1, facemodel=head)
     out = tmp_path / "a.bundle"
-    assert main(["train", str(tmp_path / "ds"), "--out", str(out), "--iterations", "2", "--quiet"]) == 0
+    assert main(["train", str(tmp_path / "ds"), "--out", str(out), "--iterations", "2", "--gaussians", "500",
+                 "--quiet"]) == 0
     summary = json.loads(capsys.readouterr().out)
     assert summary["bundle"] == str(out) and read_bundle(out).expression_names == head.expression_names
