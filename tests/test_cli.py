@@ -205,3 +205,7 @@ def test_train_cli_writes_a_bundle_and_its_workdir(tmp_path, head, capsys, monke
                  "--quiet"]) == 0
     summary = json.loads(capsys.readouterr().out)
     assert summary["bundle"] == str(out) and read_bundle(out).expression_names == head.expression_names
+    work = tmp_path / "a.train"
+    for name in ("log.jsonl", "summary.json", "report.json", "contact_sheet.png", "curves.png"):
+        assert (work / name).is_file(), name
+    assert {"psnr", "ssim", "psnr_head", "frames"} <= set(summary["eval"])

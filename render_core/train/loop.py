@@ -209,6 +209,19 @@ def load_checkpoint(path: Path) -> dict:
 
 
 # ----------------------------------------------------------------------------------------------------- train
+def _report(bundle: Path, data_dir, workdir: Path, held_out: int) -> dict:
+    """Held-out evaluation (report JSON and contact sheet) and the loss curves, in the workdir."""
+    from ..evaluate import evaluate
+    from ..plot import plot_curves
+
+    out = {"plot": str(plot_curves(workdir / "log.jsonl", workdir / "curves.png", keys=("loss", "psnr")))}
+    if held_out:
+        e = evaluate(bundle, data_dir, split="test", report=workdir / "report.json",
+                     contact_sheet=workdir / "contact_sheet.png")
+        out["eval"] = {k: e[k] for k in ("psnr", "ssim", "psnr_head", "frames", "report", "contact_sheet")}
+    return out
+
+
 def train(
     data_dir: str | os.PathLike,
     out_bundle: str | os.PathLike,
@@ -407,6 +420,7 @@ def train(
     write_bundle(avatar, out_bundle, precision="fp16")
     summary["bundle"] = str(out_bundle)
     summary["final"] = final_psnr(model, frames_all, cams_all, train_idx, target, cfg)
+    summary.update(_report(out_bundle, data_dir, workdir, len(dataset.tracking.test)))
     summary["seconds_total"] = round(time.perf_counter() - t_start, 3)
     (workdir / "summary.json").write_text(json.dumps(summary, indent=2))
     return summary
