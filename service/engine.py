@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import os
 import time
 import uuid
 from collections import deque
@@ -209,8 +210,10 @@ class Engine:
         self.settings = settings
         self.metrics = metrics or Metrics()
         self.store = BundleStore(settings.bundle_dir)
-        self.cache = AvatarCache(self.store, settings.cache_bytes, self.metrics, settings.backend,
-                                 settings.render_threads)
+        # Render threads: the setting, else every CPU this process may use (not OpenMP's current default, which
+        # torch.set_num_threads anywhere in the process would change for the native renderer too).
+        threads = settings.render_threads or len(os.sched_getaffinity(0))
+        self.cache = AvatarCache(self.store, settings.cache_bytes, self.metrics, settings.backend, threads)
         self.sessions: dict[str, Session] = {}
         self.draining = False  # not ready; new streams are refused
         self.frames_closed = False  # open streams take no new frames either

@@ -16,7 +16,6 @@ import signal
 import sys
 import time
 
-import torch
 import uvicorn
 
 from render_core.bundle import write_bundle
@@ -137,8 +136,6 @@ async def serve(settings: Settings) -> None:
     # The render thread retakes the GIL after every native call; a shorter switch interval keeps it from waiting
     # up to 5 ms behind the event loop's message parsing.
     sys.setswitchinterval(0.001)
-    # torch only handles small per-frame tensors here; its own thread pool would compete with the renderer's.
-    torch.set_num_threads(1)
     service = Service(settings)
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGTERM, signal.SIGINT):
