@@ -929,3 +929,19 @@ def test_local_synth_avatar_leaves_pairs_unstored():
     back = local_avatar.neutral.means[:, 2] < -0.05
     still = (local_avatar.deltas.means.abs().sum(-1) == 0).all(0)  # no blendshape moves them
     assert float(still[back].float().mean()) > 0.5  # most of the back of the head
+
+
+def test_default_threads_ignore_torch_thread_setting(monkeypatch):
+    """torch.set_num_threads changes OpenMP's process-wide default; the renderer's default stays every CPU."""
+    import os
+
+    from render_core import _native
+
+    if "OMP_NUM_THREADS" in os.environ:
+        pytest.skip("OMP_NUM_THREADS is set: it chooses the default")
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        assert _native.max_threads() == len(os.sched_getaffinity(0))
+    finally:
+        torch.set_num_threads(before)

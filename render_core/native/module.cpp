@@ -7,6 +7,7 @@
 #include <omp.h>
 
 #include <algorithm>
+#include <cstdlib>
 #include <cmath>
 #include <memory>
 #include <stdexcept>
@@ -135,7 +136,12 @@ void check_outputs(const Outputs& o, const In<float>& bg, int B, int width, int 
     require_shape(o.depth, {size_t(B), size_t(height), size_t(width)}, "depth");
 }
 
-int thread_count(int threads) { return threads > 0 ? threads : omp_get_max_threads(); }
+// threads <= 0: every CPU this process may use, or OMP_NUM_THREADS when set. Not omp_get_max_threads() alone: it
+// follows omp_set_num_threads, which torch.set_num_threads calls for the whole process (the runtime is shared).
+int thread_count(int threads) {
+    if (threads > 0) return threads;
+    return std::getenv("OMP_NUM_THREADS") != nullptr ? omp_get_max_threads() : omp_get_num_procs();
+}
 
 nb::dict timings(const bs::Timings& t, const bs::Kernels& k, int threads) {
     nb::dict d;
@@ -361,5 +367,5 @@ NB_MODULE(_native, m) {
     m.def("to_rgba8", &to_rgba8, "rgb"_a, "alpha"_a, "out"_a, "threads"_a = 0);
     m.def("available_isas", &bs::available_isas, "SIMD paths this build can run here, slowest first.");
     m.def("bandwidth_probe", &bandwidth_probe, "nbytes"_a, "threads"_a = 0);
-    m.def("max_threads", []() { return omp_get_max_threads(); });
+    m.def("max_threads", []() { return thread_count(0); });
 }
