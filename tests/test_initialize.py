@@ -58,8 +58,8 @@ def test_untouched_regions_store_no_pairs(avatar, head):
     assert 0.02 < stats.stored_fraction < 0.5
 
 
-def test_rotation_delta_is_the_deformation_rotation():
-    """A blendshape that rotates a whole mesh rigidly by 30 degrees about z rotates every Gaussian the same way."""
+def tetra_model() -> tuple[FaceModel, torch.Tensor]:
+    """A tetrahedron face model whose one blendshape rotates it rigidly by 30 degrees about z; and that rotation."""
     t = torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]]) * 0.1
     faces = torch.tensor([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
     r = axis_angle_to_matrix(torch.tensor([0.0, 0.0, math.pi / 6]))
@@ -67,6 +67,12 @@ def test_rotation_delta_is_the_deformation_rotation():
                       expression_basis=(t @ r.T - t)[None], joint_names=["root", "jaw"], joint_parents=[-1, 0],
                       joint_positions=torch.zeros(2, 3), lbs_weights=torch.tensor([[1.0, 0.0]] * 4),
                       skull_joint="root")
+    return model, r
+
+
+def test_rotation_delta_is_the_deformation_rotation():
+    """A blendshape that rotates a whole mesh rigidly by 30 degrees about z rotates every Gaussian the same way."""
+    model, r = tetra_model()
     av = init_avatar(model, gaussians=200, mouth=2, seed=0)
     q0 = av.neutral.quats
     q1 = torch.nn.functional.normalize(q0 + av.deltas.quats[0], dim=-1)

@@ -501,10 +501,9 @@ def test_near_plane_and_close_huge_gaussians_match_reference(case, simd):
         assert float(ref.alpha.min()) > 0.3
 
 
-@pytest.mark.parametrize("simd", SIMD)
-def test_extreme_gaussians_do_not_crash(simd):
-    """Enormous, tiny and nearly degenerate Gaussians at and near the near plane: finite outputs in range."""
-    cams = simple_camera(32, 24, 40.0)
+def extreme_scene() -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """8 enormous, tiny and nearly degenerate Gaussians at and near the near plane of ``simple_camera(32, 24, 40)``:
+    means, quats, scales, opacities ([1, 8, ...])."""
     z = torch.tensor([0.01, 0.0100001, 0.011, 0.02, 0.5, 1e6, 0.5, 0.03])
     means = torch.stack([torch.tensor([0.0, 0.0, 0.0, 1e3, 0.0, 0.0, 0.0, -0.02]), torch.zeros(8), z], -1)[None]
     scales = torch.tensor([1e6, 1e-12, 1e3, 1e-30, 1e-3, 1e5, 1e15, 50.0])[:, None].expand(8, 3).clone()[None]
@@ -513,6 +512,14 @@ def test_extreme_gaussians_do_not_crash(simd):
                           [0.5, 0.5, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0], [0.3, -0.2, 0.9, 0.1],
                           [0.0, 0.0, 0.0, 0.0]])[None]
     opac = torch.tensor([0.5, 1.0, 0.7, 0.9, 0.999, 0.8, 0.6, 0.5])[None]
+    return means, quats, scales, opac
+
+
+@pytest.mark.parametrize("simd", SIMD)
+def test_extreme_gaussians_do_not_crash(simd):
+    """Enormous, tiny and nearly degenerate Gaussians at and near the near plane: finite outputs in range."""
+    cams = simple_camera(32, 24, 40.0)
+    means, quats, scales, opac = extreme_scene()
     colors = torch.rand(1, 8, 3)
     rgb, alpha, depth, _ = native_raster(_stack(means, quats, scales, opac, colors), cams, BG3[:1], simd=simd)
     for t in (rgb, alpha, depth):

@@ -22,6 +22,7 @@ from render_core.deform import deform, shade
 from render_core.errors import ShapeError
 from render_core.raster import native, reference
 from render_core.synth import synth_avatar
+from tests.test_native import extreme_scene, simple_camera
 
 if not native.available():
     pytest.skip(f"native backend not built: {native.IMPORT_ERROR}", allow_module_level=True)
@@ -398,15 +399,8 @@ def test_fully_culled_scene_gives_zero_gradients_and_the_background_gradient():
 
 def test_extreme_gaussians_give_finite_gradients():
     """Enormous, tiny and nearly degenerate Gaussians at and near the near plane (as test_native's crash test)."""
-    cams = Cameras(intrinsics(32, 24, 40.0)[None], torch.eye(3)[None], torch.zeros(1, 3), 32, 24)
-    z = torch.tensor([0.01, 0.0100001, 0.011, 0.02, 0.5, 1e6, 0.5, 0.03])
-    means = torch.stack([torch.tensor([0.0, 0.0, 0.0, 1e3, 0.0, 0.0, 0.0, -0.02]), torch.zeros(8), z], -1)[None]
-    scales = torch.tensor([1e6, 1e-12, 1e3, 1e-30, 1e-3, 1e5, 1e15, 50.0])[:, None].expand(8, 3).clone()[None]
-    scales[0, 6, 1] = 1e-15
-    quats = torch.tensor([[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [1.0, 1.0, 1.0, 1.0], [1e-30, 0.0, 0.0, 0.0],
-                          [0.5, 0.5, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0], [0.3, -0.2, 0.9, 0.1],
-                          [0.0, 0.0, 0.0, 0.0]])[None]
-    opac = torch.tensor([0.5, 1.0, 0.7, 0.9, 0.999, 0.8, 0.6, 0.5])[None]
+    cams = simple_camera(32, 24, 40.0)
+    means, quats, scales, opac = extreme_scene()
     colors = torch.rand(1, 8, 3, generator=torch.Generator().manual_seed(0))
     args = [t.contiguous() for t in (means, quats, scales, opac, colors)]
     for mode in MODES:

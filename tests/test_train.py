@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import math
 
 import numpy as np
 import pytest
@@ -14,14 +13,14 @@ from render_core.data import read_dataset
 from render_core.data.frames import frame_inputs, targets
 from render_core.data.generate import synth_dataset
 from render_core.deform import blend
-from render_core.facemodel import FaceModel
 from render_core.initialize import init_avatar
 from render_core.renderer import AvatarRenderer
-from render_core.rotation import axis_angle_to_matrix, matrix_to_quat, quat_multiply
+from render_core.rotation import matrix_to_quat, quat_multiply
 from render_core.train import CONSISTENCY, TrainableAvatar, get_preset, train
 from render_core.train.geometry import closest_points, consistency_range, displacement_magnitudes
 from render_core.train.loop import forward, load_checkpoint, make_optimizer
 from render_core.train.losses import MouthCylinder, psnr, ssim
+from tests.test_initialize import tetra_model
 
 TOY = get_preset("tiny").with_(gaussians=400, mouth=40, sh_every=15, checkpoint_every=1000, log_every=1,
                                final_eval_frames=2, xyz_decay_steps=50)
@@ -49,15 +48,6 @@ def trained(toy, head, tmp_path_factory):
     return summary, out
 
 
-def _tetra_model() -> tuple[FaceModel, torch.Tensor]:
-    t = torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]]) * 0.1
-    faces = torch.tensor([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
-    r = axis_angle_to_matrix(torch.tensor([0.0, 0.0, math.pi / 6]))
-    model = FaceModel(name="tetra", template=t, faces=faces, expression_names=["turn"],
-                      expression_basis=(t @ r.T - t)[None], joint_names=["root", "jaw"], joint_parents=[-1, 0],
-                      joint_positions=torch.zeros(2, 3), lbs_weights=torch.tensor([[1.0, 0.0]] * 4),
-                      skull_joint="root")
-    return model, r
 
 
 # ------------------------------------------------------------------------------------------------ the model
@@ -79,7 +69,7 @@ def test_zero_residual_equals_the_initialisation(small, head, consistency):
 def test_rigid_rotation_gives_that_rotation():
     """A blendshape rotating the whole mesh by 30 degrees: the model's initial blendshape (dG_hat = 0) rotates every
     Gaussian's position and orientation by exactly that rotation, and d is the displacement magnitude."""
-    fm, r = _tetra_model()
+    fm, r = tetra_model()
     av = init_avatar(fm, gaussians=200, mouth=2, seed=0)
     model = TrainableAvatar.from_facemodel(av, fm, "all")
     out = model.to_avatar()

@@ -173,16 +173,27 @@ nb::dict render(const NativeAvatar& avatar, In<float> psi, In<float> rot, In<flo
     return timings(tm, k, nt);
 }
 
+struct PosedInputs {
+    In<float> means, quats, scales, opacities, colors;
+};
+
+size_t check_posed(const PosedInputs& in, size_t& N) {
+    require(in.means.ndim() == 3 && in.means.shape(2) == 3, "means: expected [B, N, 3]");
+    const size_t B = in.means.shape(0);
+    N = in.means.shape(1);
+    require(B >= 1, "means: empty batch");
+    require_shape(in.quats, {B, N, 4}, "quats");
+    require_shape(in.scales, {B, N, 3}, "scales");
+    require_shape(in.opacities, {B, N}, "opacities");
+    require_shape(in.colors, {B, N, 3}, "colors");
+    return B;
+}
+
 nb::dict rasterize(In<float> means, In<float> quats, In<float> scales, In<float> opacities, In<float> colors,
                    In<float> K, In<float> R, In<float> t, int width, int height, bool antialiased, In<float> bg,
                    Out<float> rgb, Out<float> alpha, Out<float> depth, const std::string& isa, int threads) {
-    require(means.ndim() == 3 && means.shape(2) == 3, "means: expected [B, N, 3]");
-    const size_t B = means.shape(0), N = means.shape(1);
-    require(B >= 1, "means: empty batch");
-    require_shape(quats, {B, N, 4}, "quats");
-    require_shape(scales, {B, N, 3}, "scales");
-    require_shape(opacities, {B, N}, "opacities");
-    require_shape(colors, {B, N, 3}, "colors");
+    size_t N = 0;
+    const size_t B = check_posed({means, quats, scales, opacities, colors}, N);
     auto cams = make_cams(K, R, t, int(B), width, height, antialiased);
     Outputs o{rgb, alpha, depth};
     check_outputs(o, bg, int(B), width, height);
@@ -202,21 +213,6 @@ struct TrainContext {
     bs::RasterContext ctx;
 };
 
-struct PosedInputs {
-    In<float> means, quats, scales, opacities, colors;
-};
-
-size_t check_posed(const PosedInputs& in, size_t& N) {
-    require(in.means.ndim() == 3 && in.means.shape(2) == 3, "means: expected [B, N, 3]");
-    const size_t B = in.means.shape(0);
-    N = in.means.shape(1);
-    require(B >= 1, "means: empty batch");
-    require_shape(in.quats, {B, N, 4}, "quats");
-    require_shape(in.scales, {B, N, 3}, "scales");
-    require_shape(in.opacities, {B, N}, "opacities");
-    require_shape(in.colors, {B, N, 3}, "colors");
-    return B;
-}
 
 // The forward of rasterize() that also returns a context for rasterize_backward: (timings, context).
 nb::tuple rasterize_train(In<float> means, In<float> quats, In<float> scales, In<float> opacities, In<float> colors,

@@ -129,6 +129,16 @@ def _camera_arrays(cameras: Cameras) -> tuple[np.ndarray, np.ndarray, np.ndarray
     return _np(cameras.K), _np(cameras.R), _np(cameras.t)
 
 
+def _check_posed(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, colors: Tensor, cameras: Cameras,
+                 background: Tensor | None, mode: str) -> None:
+    """What both rasterize entry points check before the native code runs (it checks the shapes)."""
+    _require()
+    if mode not in ("classic", "antialiased"):
+        raise ValueError(f"raster mode must be 'classic' or 'antialiased', got {mode!r}")
+    _check_finite(means=means, quats=quats, scales=scales, opacities=opacities, colors=colors, background=background)
+    _check_cameras(cameras)
+
+
 def rasterize(
     means: Tensor,  # [B, N, 3]
     quats: Tensor,  # [B, N, 4] wxyz
@@ -146,12 +156,8 @@ def rasterize(
 
     Returns rgb [B, H, W, 3], alpha [B, H, W], depth [B, H, W] and the stage timings. No autograd.
     """
-    _require()
-    if mode not in ("classic", "antialiased"):
-        raise ValueError(f"raster mode must be 'classic' or 'antialiased', got {mode!r}")
+    _check_posed(means, quats, scales, opacities, colors, cameras, background, mode)
     b = means.shape[0]
-    _check_finite(means=means, quats=quats, scales=scales, opacities=opacities, colors=colors, background=background)
-    _check_cameras(cameras)
     rgb, alpha, depth = _outputs(b, cameras.height, cameras.width)
     K, R, t = _camera_arrays(cameras)
     timings = _native.rasterize(_np(means), _np(quats), _np(scales), _np(opacities), _np(colors), K, R, t,
@@ -228,11 +234,7 @@ def rasterize_differentiable(
     copies of means, quats, scales and opacities where the inputs are not float32 and contiguous. The backward
     itself needs 36 bytes per pair (per-pair gradient moments), kept by the calling thread for reuse.
     """
-    _require()
-    if mode not in ("classic", "antialiased"):
-        raise ValueError(f"raster mode must be 'classic' or 'antialiased', got {mode!r}")
-    _check_finite(means=means, quats=quats, scales=scales, opacities=opacities, colors=colors, background=background)
-    _check_cameras(cameras)
+    _check_posed(means, quats, scales, opacities, colors, cameras, background, mode)
     return _Rasterize.apply(means, quats, scales, opacities, colors, background, cameras, mode, simd, threads)
 
 
