@@ -2,8 +2,8 @@
 
 Per iteration (METHOD.md sections 5 and 6): one random training frame (a seeded generator), blend (Eq. 1 with
 the consistency parametrisation of :mod:`.model`) -> skin -> shade (SH at the view direction, degree ramped) ->
-the native differentiable rasterizer (C++ forward and backward) -> 0.8 L1 + 0.2 D-SSIM + 10 alpha MSE + 100 mouth
-cylinder -> backward -> Adam (eps 1e-15, per-group learning rates, xyz decay).
+the differentiable rasterizer (native C++ forward and backward; gsplat's on CUDA) -> 0.8 L1 + 0.2 D-SSIM
++ 10 alpha MSE + 100 mouth cylinder -> backward -> Adam (eps 1e-15, per-group learning rates, xyz decay).
 
 Reads only what a real user has: the dataset's frames, masks and tracking. Checkpoints (tensors, optimizer state,
 RNG state, iteration; loaded with ``weights_only=True``) go to ``<workdir>/checkpoints``; ``resume=True``
@@ -121,12 +121,44 @@ def optimizer_kind(opt: torch.optim.Optimizer) -> str:
     return "fused" if d.get("fused") else "foreach" if d.get("foreach") else "for-loop"
 
 
+def check_device(device: str) -> None:
+    """The trainer's devices: "cpu" (the native rasterizer's C++ backward) and "cuda" (gsplat's kernels); an error
+    naming what is missing otherwise."""
+    if device == "cpu":
+        if not native.available():
+            raise RuntimeError(f"training on the CPU needs the native backend ({native.IMPORT_ERROR})")
+    elif device == "cuda":
+        from ..raster import gsplat_backend
+
+        if not gsplat_backend.available():
+            raise RuntimeError(f"training with device='cuda' needs the cuda backend: "
+                               f"{gsplat_backend.unavailable_reason()}")
+    else:
+        raise ValueError(f"device must be 'cpu' or 'cuda', got {device!r}")
+
+
+def rasterize(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
+              colors: torch.Tensor, cameras: Cameras, mode: str, *, device: str = "cpu",
+              threads: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+    """The differentiable rasterization step on ``device``: rgb [B, H, W, 3], alpha [B, H, W] on black.
+
+    "cpu": the native forward and C++ backward; "cuda": gsplat's CUDA forward and backward (CPU inputs move to the
+    GPU and rgb, alpha come back to the inputs' device, all differentiably)."""
+    if device == "cuda":
+        from ..raster import gsplat_backend
+
+        return gsplat_backend.rasterize_differentiable(means, quats, scales, opacities, colors, cameras, None, mode)
+    return native.rasterize_differentiable(means, quats, scales, opacities, colors, cameras, None, mode,
+                                           threads=threads)
+
+
 def forward(model: TrainableAvatar, frame: Frame, cameras: Cameras, sh_degree: int | None = None,
             threads: int = 0, times: dict | None = None,
-            capture: dict | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+            capture: dict | None = None, device: str = "cpu") -> tuple[torch.Tensor, torch.Tensor]:
     """Render B frames of the model (differentiable): rgb [B, H, W, 3], alpha [B, H, W] on a black background.
 
-    ``capture``: receives the posed centres ("means", [B, N + M, 3], their gradient kept) for densification."""
+    ``capture``: receives the posed centres ("means", [B, N + M, 3], their gradient kept) for densification.
+    ``device``: where the rasterization step runs (:func:`rasterize`)."""
     clock = time.perf_counter
     t0 = clock()
     avatar = model.avatar(sh_degree, deltas=False)
@@ -139,8 +171,8 @@ def forward(model: TrainableAvatar, frame: Frame, cameras: Cameras, sh_degree: i
     t2 = clock()
     colors = shade(splats, cameras.centres.to(splats.means))
     t3 = clock()
-    rgb, alpha = native.rasterize_differentiable(splats.means, splats.quats, splats.scales, splats.opacities, colors,
-                                                 cameras, None, avatar.raster_mode, threads=threads)
+    rgb, alpha = rasterize(splats.means, splats.quats, splats.scales, splats.opacities, colors, cameras,
+                           avatar.raster_mode, device=device, threads=threads)
     t4 = clock()
     if times is not None:
         times["blend"] += t1 - t0
@@ -245,7 +277,8 @@ def train(
         out_bundle: where the bundle goes.
         workdir: checkpoints and ``log.jsonl`` (default: ``<out_bundle stem>.train`` beside the bundle).
         preset: ``"tiny"``, ``"paper"`` or a :class:`Preset`.
-        device: ``"cpu"`` (the native rasterizer's backward); other devices are not supported yet.
+        device: where the rasterization step runs: ``"cpu"`` (the native rasterizer's C++ backward) or
+            ``"cuda"`` (gsplat's CUDA forward and backward; the rest of the step stays on the CPU for now).
         resume: continue from the last checkpoint in ``workdir`` (its preset and seed win).
         seed: initialisation and frame-sampling seed.
         iterations: total iterations (default: the preset's).
@@ -259,11 +292,7 @@ def train(
         A summary dict (see the report fields: iterations, seconds, stage_ms, loss/psnr first and last, final
         per-frame PSNR of the exported avatar on training frames, bundle, workdir, ...).
     """
-    if device != "cpu":
-        raise ValueError(f"device {device!r} is not supported by the trainer yet (the differentiable rasterizer "
-                         "is the native CPU one); use device='cpu'")
-    if not native.available():
-        raise RuntimeError(f"training needs the native backend ({native.IMPORT_ERROR})")
+    check_device(device)
     t_start = time.perf_counter()
     out_bundle = Path(out_bundle)
     workdir = Path(workdir) if workdir is not None else out_bundle.with_name(out_bundle.stem + ".train")
@@ -350,7 +379,7 @@ def train(
             times["data"] += clock() - t0
             stats = cfg.densify and it <= cfg.densify_until
             capture: dict | None = {} if stats else None
-            rgb, alpha = forward(model, frame, cams, degree, cfg.threads, times, capture)
+            rgb, alpha = forward(model, frame, cams, degree, cfg.threads, times, capture, device=device)
             t1 = clock()
             loss, terms = losses.total_loss(rgb, alpha, rgb_t, mask_t, model.mouth_means, cylinder)
             t2 = clock()
@@ -401,7 +430,8 @@ def train(
         "iterations": end, "iterations_this_run": done, "resumed_from": start if start else None,
         "gaussians": model.num_gaussians, "mouth": int(model.mouth_means.shape[0]),
         "expressions": len(model.meta["expression_names"]), "size": [int(tracking.width), int(tracking.height)],
-        "train_frames": len(train_idx), "optimizer": optimizer_kind(opt), "eps": model.eps, "d_max": model.d_max,
+        "train_frames": len(train_idx), "device": device, "optimizer": optimizer_kind(opt), "eps": model.eps,
+        "d_max": model.d_max,
         "seconds": round(prior_seconds + run_seconds, 3),
         "ms_per_iteration": round(1e3 * run_seconds / done, 2) if done else None,
         "stage_ms": {s: round(1e3 * times[s] / done, 2) for s in STAGES} if done else {},
@@ -419,7 +449,7 @@ def train(
     out_bundle.parent.mkdir(parents=True, exist_ok=True)
     write_bundle(avatar, out_bundle, precision="fp16")
     summary["bundle"] = str(out_bundle)
-    summary["final"] = final_psnr(model, frames_all, cams_all, train_idx, target, cfg)
+    summary["final"] = final_psnr(model, frames_all, cams_all, train_idx, target, cfg, device)
     summary.update(_report(out_bundle, data_dir, workdir, len(dataset.tracking.test)))
     summary["seconds_total"] = round(time.perf_counter() - t_start, 3)
     (workdir / "summary.json").write_text(json.dumps(summary, indent=2))
@@ -427,7 +457,7 @@ def train(
 
 
 def final_psnr(model: TrainableAvatar, frames_all: Frame, cams_all: Cameras, train_idx: np.ndarray, target,
-               cfg: Preset) -> dict:
+               cfg: Preset, device: str = "cpu") -> dict:
     """PSNR (full frame, masked target) of the trained model on up to ``cfg.final_eval_frames`` training frames,
     rendered at the full SH degree (the exported avatar's) with the training rasterizer."""
     count = min(cfg.final_eval_frames, len(train_idx))
@@ -435,7 +465,8 @@ def final_psnr(model: TrainableAvatar, frames_all: Frame, cams_all: Cameras, tra
     out = {"frames": [], "psnr": []}
     with torch.no_grad():
         for j in picks.tolist():
-            rgb, _ = forward(model, _select(frames_all, j), _select_cams(cams_all, j), None, cfg.threads)
+            rgb, _ = forward(model, _select(frames_all, j), _select_cams(cams_all, j), None, cfg.threads,
+                             device=device)
             want, _ = target(int(train_idx[j]))
             out["frames"].append(int(train_idx[j]))
             out["psnr"].append(round(losses.psnr(rgb, want), 4))
