@@ -6,7 +6,8 @@ between frames), and the head is framed to cover 40-60% of the image (the focal 
 neutral frame before timing). Times are medians over the timed frames; ``total`` is the wall-clock time of the
 whole render call. For a non-reference backend the same run also times the reference backend on the same avatar
 and camera (``vs_reference``), and for the native backend a memory-bandwidth probe reads as many bytes as one
-blend streams, so the blend is reported against that bound.
+blend streams, so the blend is reported against that bound. The cuda backend's stage times come from CUDA events
+(``shade``, the SH colour, is its own stage there) and its report names the GPU.
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ from .avatar import Avatar
 from .camera import Cameras, orbit
 from .deform import Frame
 from .encode import to_uint8
-from .raster import native
+from .raster import check_backend, gsplat_backend, native
 from .renderer import AvatarRenderer
 from .synth import synth_avatar
 
@@ -65,6 +66,8 @@ def random_frames(avatar: Avatar, batch: int, g: torch.Generator) -> Frame:
 
 def _time_frames(renderer: AvatarRenderer, cams: Cameras, frames: int, warmup: int, g: torch.Generator) -> dict:
     stages: dict[str, list[float]] = {"blend": [], "lbs": [], "raster": [], "total": []}
+    if renderer.backend == "cuda":
+        stages["shade"] = []
     covs: list[float] = []
     timings: dict = {}
     for i in range(warmup + frames):
@@ -75,7 +78,7 @@ def _time_frames(renderer: AvatarRenderer, cams: Cameras, frames: int, warmup: i
         if i < warmup:
             continue
         timings = out.timings or {}
-        for key in ("blend", "lbs", "raster"):
+        for key in stages.keys() - {"total"}:
             stages[key].append(float(timings.get(key, 0.0)))
         stages["total"].append(total)
         covs.append(coverage(out.alpha))
@@ -98,10 +101,18 @@ def bench_render(
     reference_frames: int = 2,
     threads: int = 0,
 ) -> dict:
-    """Time ``frames`` frames (after ``warmup``) of ``streams`` batched streams; returns the JSON report."""
+    """Time ``frames`` frames (after ``warmup``) of ``streams`` batched streams; returns the JSON report.
+
+    ``precision`` is the blendshape storage: the synthetic avatar's ("fp32" or "fp16"), and for the cuda backend
+    the storage on the GPU ("bf16" too, from an fp16 avatar)."""
+    backend = check_backend(backend)  # before building the avatar: an unavailable backend fails at once
+    if precision == "bf16" and backend != "cuda":
+        raise ValueError("bf16 blendshape storage is the cuda backend's only; use fp16 or fp32")
     if avatar is None:
-        avatar = synth_avatar(gaussians, blendshapes, seed=seed, sh_degree=sh_degree).with_precision(precision)
-    renderer = AvatarRenderer(avatar, backend, threads=threads)
+        stored = "fp16" if precision == "bf16" else precision
+        avatar = synth_avatar(gaussians, blendshapes, seed=seed, sh_degree=sh_degree).with_precision(stored)
+    # bf16 is a storage on the GPU only (from the fp16 avatar); otherwise every backend stores the avatar's own.
+    renderer = AvatarRenderer(avatar, backend, threads=threads, precision="bf16" if precision == "bf16" else None)
     cams = framed_camera(avatar, size).expand(streams)
     g = torch.Generator().manual_seed(seed + 1)
     timed = _time_frames(renderer, cams, frames, warmup, g)
@@ -116,7 +127,7 @@ def bench_render(
         "size": size,
         "streams": streams,
         "sh_degree": avatar.sh_degree,
-        "precision": avatar.precision,
+        "precision": renderer.device_avatar.precision if renderer.device_avatar is not None else avatar.precision,
         "raster_mode": avatar.raster_mode,
         "coverage": timed["coverage"],
         "fps": round(fps, 3),
@@ -142,6 +153,11 @@ def bench_render(
             "bound_ms": round(bound_ms, 3),
             "vs_bound": round(ms["blend"] / bound_ms, 3),
         }
+    dev = renderer.device_avatar
+    if dev is not None:
+        report["device"] = gsplat_backend.device_name()
+        report["machine"].update(gpu=report["device"], cuda=torch.version.cuda, gsplat=_gsplat_version())
+        report["blend"] = {"bytes": dev.deltas.numel() * dev.deltas.element_size()}  # the blendshape matrix
     if renderer.backend != "reference" and reference_frames > 0:
         ref = _time_frames(AvatarRenderer(avatar, "reference"), cams, reference_frames, 1, g)
         ref_fps = 1000.0 / ref["ms"]["total"]
@@ -150,24 +166,32 @@ def bench_render(
     return report
 
 
-def _time_raster_step(raster, avatar: Avatar, cams: Cameras, frames: int, warmup: int, g: torch.Generator) -> dict:
+def _time_raster_step(raster, avatar: Avatar, cams: Cameras, frames: int, warmup: int, g: torch.Generator,
+                      device: torch.device | None = None) -> dict:
     """Median forward and backward ms of ``raster(means, quats, scales, opacities, colors, cams, bg, mode)`` ->
-    (rgb, alpha) on fresh posed splats each frame, for the loss sum(w rgb) + sum(v alpha) with random w, v."""
+    (rgb, alpha) on fresh posed splats each frame, for the loss sum(w rgb) + sum(v alpha) with random w, v.
+    ``device``: where the inputs live (a CUDA device is synchronised before each clock reading)."""
     from .deform import deform, shade
 
+    device = device or torch.device("cpu")
+    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
+    cams_dev = cams.to(device=device)
     fwd, bwd, last = [], [], {}
     for i in range(warmup + frames):
         splats = deform(avatar, random_frames(avatar, len(cams), g))
         colors = shade(splats, cams.centres)
-        leaves = [t.detach().float().contiguous().requires_grad_(True)
+        leaves = [t.detach().float().to(device).contiguous().requires_grad_(True)
                   for t in (splats.means, splats.quats, splats.scales, splats.opacities, colors)]
-        bg = torch.rand(len(cams), 3, generator=g).requires_grad_(True)
-        w = torch.randn(len(cams), cams.height, cams.width, 3, generator=g)
-        v = torch.randn(len(cams), cams.height, cams.width, generator=g)
+        bg = torch.rand(len(cams), 3, generator=g).to(device).requires_grad_(True)
+        w = torch.randn(len(cams), cams.height, cams.width, 3, generator=g).to(device)
+        v = torch.randn(len(cams), cams.height, cams.width, generator=g).to(device)
+        sync()
         t0 = time.perf_counter()
-        rgb, alpha = raster(*leaves, cams, bg, avatar.raster_mode)
+        rgb, alpha = raster(*leaves, cams_dev, bg, avatar.raster_mode)
+        sync()
         t1 = time.perf_counter()
         ((rgb * w).sum() + (alpha * v).sum()).backward()
+        sync()
         t2 = time.perf_counter()
         if i >= warmup:
             fwd.append((t1 - t0) * 1e3)
@@ -180,14 +204,22 @@ def _time_raster_step(raster, avatar: Avatar, cams: Cameras, frames: int, warmup
 
 def bench_raster_backward(gaussians: int = 10_000, size: int = 256, frames: int = 10, reference_frames: int = 2,
                           warmup: int = 1, batch: int = 1, seed: int = 0, threads: int = 0,
-                          simd: str | None = None) -> dict:
+                          simd: str | None = None, device: str = "cpu") -> dict:
     """Forward and backward time of the differentiable rasterizer: the native one
     (:func:`render_core.raster.native.rasterize_differentiable`) against the torch reference's autograd, side by
     side in one run on the same synthetic head (``gaussians`` face Gaussians plus its mouth, SH degree 0, framed to
     cover about half of a ``size`` square image), fresh random expression and pose every frame. Medians (ms) per
-    call of ``batch`` frames; the reference runs ``reference_frames`` frames."""
+    call of ``batch`` frames; the reference runs ``reference_frames`` frames.
+
+    ``device="cuda"``: the timed rasterizer is gsplat's on the GPU (training's CUDA step, inputs already on the
+    GPU), reported under ``cuda`` with the GPU's name, and the native one (where built) runs as the comparison
+    instead of the reference."""
     from .raster import reference
 
+    if device not in ("cpu", "cuda"):
+        raise ValueError(f"device must be 'cpu' or 'cuda', got {device!r}")
+    if device == "cuda":
+        check_backend("cuda")
     avatar = synth_avatar(gaussians, 8, seed=seed, sh_degree=0)
     cams = framed_camera(avatar, size).expand(batch)
     g = torch.Generator().manual_seed(seed + 1)
@@ -199,28 +231,36 @@ def bench_raster_backward(gaussians: int = 10_000, size: int = 256, frames: int 
         out = reference.rasterize(*args)
         return out.rgb, out.alpha
 
-    nat = _time_raster_step(native_step, avatar, cams, frames, warmup, g)
-    last = nat.pop("_last")
-    node = last["node"]
-    report = {
-        "benchmark": "raster_backward",
-        "gaussians": avatar.num_gaussians,
-        "mouth_gaussians": avatar.num_mouth,
-        "size": size,
-        "batch": batch,
-        "raster_mode": avatar.raster_mode,
-        "coverage": round(coverage(last["alpha"]), 4),
-        "native": {**nat, "simd": node.timings.get("isa"), "threads": node.timings.get("threads"),
-                   "forward_stages_ms": {k: round(node.timings[k], 3) for k in ("lbs", "bin", "raster")},
-                   "backward_stages_ms": {k: round(node.backward_timings[k], 3) for k in ("raster", "project")},
-                   "pairs": node.handle.pairs, "saved_bytes": node.handle.nbytes},
-    }
-    if reference_frames > 0:
-        ref = _time_raster_step(reference_step, avatar, cams, reference_frames, warmup, g)
-        ref.pop("_last")
-        report["reference"] = ref
-        report["speedup"] = {k: round(ref[f"{k}_ms"] / max(nat[f"{k}_ms"], 1e-9), 1)
-                             for k in ("forward", "backward", "total")}
+    report: dict = {"benchmark": "raster_backward", "device": device, "gaussians": avatar.num_gaussians,
+                    "mouth_gaussians": avatar.num_mouth, "size": size, "batch": batch,
+                    "raster_mode": avatar.raster_mode}
+    if device == "cuda":
+        gpu = gsplat_backend.device()
+        cuda = _time_raster_step(gsplat_backend.rasterize_differentiable, avatar, cams, frames, warmup, g, gpu)
+        report["coverage"] = round(coverage(cuda.pop("_last")["alpha"]), 4)
+        report["cuda"] = {**cuda, "gpu": gsplat_backend.device_name(), "gsplat": _gsplat_version()}
+        if native.available() and reference_frames > 0:
+            nat = _time_raster_step(native_step, avatar, cams, reference_frames, warmup, g)
+            nat.pop("_last")
+            report["native"] = nat
+            report["speedup_vs_native"] = {k: round(nat[f"{k}_ms"] / max(cuda[f"{k}_ms"], 1e-9), 1)
+                                           for k in ("forward", "backward", "total")}
+    else:
+        nat = _time_raster_step(native_step, avatar, cams, frames, warmup, g)
+        last = nat.pop("_last")
+        node = last["node"]
+        report["coverage"] = round(coverage(last["alpha"]), 4)
+        report["native"] = {**nat, "simd": node.timings.get("isa"), "threads": node.timings.get("threads"),
+                            "forward_stages_ms": {k: round(node.timings[k], 3) for k in ("lbs", "bin", "raster")},
+                            "backward_stages_ms": {k: round(node.backward_timings[k], 3)
+                                                   for k in ("raster", "project")},
+                            "pairs": node.handle.pairs, "saved_bytes": node.handle.nbytes}
+        if reference_frames > 0:
+            ref = _time_raster_step(reference_step, avatar, cams, reference_frames, warmup, g)
+            ref.pop("_last")
+            report["reference"] = ref
+            report["speedup"] = {k: round(ref[f"{k}_ms"] / max(nat[f"{k}_ms"], 1e-9), 1)
+                                 for k in ("forward", "backward", "total")}
     report["machine"] = {"cpu": _cpu_name(), "cores": _cores(), "python": platform.python_version(),
                          "torch": torch.__version__, "torch_threads": torch.get_num_threads()}
     return report
@@ -282,6 +322,14 @@ def bench_codecs(size: int = 512, frames: int = 30, gaussians: int = 20_000, see
         }
     report["machine"] = {"cpu": _cpu_name(), "cores": _cores(), "python": platform.python_version()}
     return report
+
+
+def _gsplat_version() -> str | None:
+    try:
+        import gsplat
+    except ImportError:
+        return None
+    return getattr(gsplat, "__version__", None)
 
 
 def _cores() -> int:

@@ -117,6 +117,21 @@ def cmd_bench_render(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_bench_raster_backward(args: argparse.Namespace) -> int:
+    from .bench import bench_raster_backward
+
+    report = bench_raster_backward(gaussians=args.gaussians, size=args.size, frames=args.frames,
+                                   reference_frames=args.reference_frames, warmup=args.warmup, batch=args.batch,
+                                   seed=args.seed, threads=args.threads, device=args.device)
+    if args.json:
+        _emit(report)
+    else:
+        timed = report["cuda" if args.device == "cuda" else "native"]
+        print(f"{args.device}: forward {timed['forward_ms']} ms, backward {timed['backward_ms']} ms "
+              f"({report['gaussians']} gaussians, {report['size']}px, batch {report['batch']})")
+    return 0
+
+
 def cmd_bench_codecs(args: argparse.Namespace) -> int:
     from .bench import bench_codecs
 
@@ -223,7 +238,7 @@ def cmd_data_convert(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from .raster import backend_names, default_backend
+    from .raster import KNOWN_BACKENDS, default_backend
 
     p = argparse.ArgumentParser(prog="blendsplat", description=__doc__)
     p.add_argument("-v", "--verbose", action="store_true", help="debug logging on stderr")
@@ -343,7 +358,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--out", required=True, type=Path)
     r.add_argument("--size", type=int, default=512)
     r.add_argument("--format", choices=("png", "exr", "mp4"), default="png")
-    r.add_argument("--backend", choices=backend_names(), default=default_backend())
+    r.add_argument("--backend", choices=KNOWN_BACKENDS, default=default_backend())
     r.add_argument("--background", type=_background, default=(0.0, 0.0, 0.0), help="R,G,B in [0, 1]")
     r.add_argument("--fps", type=int, default=30, help="frame rate of mp4 output")
     r.set_defaults(fn=cmd_render)
@@ -351,7 +366,8 @@ def build_parser() -> argparse.ArgumentParser:
     bench = sub.add_parser("bench", help="benchmarks (JSON with --json)")
     bsub = bench.add_subparsers(dest="bench_command", required=True)
     b = bsub.add_parser("render", help="end-to-end blend + LBS + raster frame time")
-    b.add_argument("--backend", choices=backend_names(), default=default_backend())
+    b.add_argument("--backend", choices=KNOWN_BACKENDS, default=default_backend(),
+                   help="an unavailable one (cuda without a GPU or gsplat) is an error saying why")
     b.add_argument("--gaussians", type=int, default=10_000)
     b.add_argument("--blendshapes", type=int, default=50)
     b.add_argument("--size", type=int, default=512)
@@ -362,12 +378,27 @@ def build_parser() -> argparse.ArgumentParser:
                    help="frames of the reference backend timed in the same run for the speed-up (0: skip)")
     b.add_argument("--threads", type=int, default=0, help="native threads (0: all)")
     b.add_argument("--sh-degree", type=int, default=3, choices=range(4))
-    b.add_argument("--precision", choices=("fp32", "fp16"), default="fp16",
-                   help="blendshape storage of the synthetic avatar (production bundles are fp16)")
+    b.add_argument("--precision", choices=("fp32", "fp16", "bf16"), default="fp16",
+                   help="blendshape storage of the synthetic avatar (production bundles are fp16; bf16: the cuda "
+                        "backend's GPU storage only)")
     b.add_argument("--seed", type=int, default=0)
     b.add_argument("--bundle", type=Path, default=None, help="benchmark this bundle instead of a synthetic one")
     b.add_argument("--json", action="store_true")
     b.set_defaults(fn=cmd_bench_render)
+    b = bsub.add_parser("raster-backward", help="forward + backward of the differentiable rasterizer (training's "
+                                                "step): native on cpu, gsplat on cuda")
+    b.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
+    b.add_argument("--gaussians", type=int, default=10_000)
+    b.add_argument("--size", type=int, default=256)
+    b.add_argument("--batch", type=int, default=1, help="frames per call")
+    b.add_argument("--frames", type=int, default=10, help="timed calls")
+    b.add_argument("--warmup", type=int, default=1)
+    b.add_argument("--reference-frames", type=int, default=2,
+                   help="calls of the comparison (cpu: the torch reference; cuda: the native one; 0: skip)")
+    b.add_argument("--threads", type=int, default=0, help="native threads (0: all)")
+    b.add_argument("--seed", type=int, default=0)
+    b.add_argument("--json", action="store_true")
+    b.set_defaults(fn=cmd_bench_raster_backward)
     b = bsub.add_parser("codecs", help="encode time and size of rendered frames per streaming codec")
     b.add_argument("--size", type=int, default=512)
     b.add_argument("--frames", type=int, default=30, help="rendered frames of a smooth 30 fps sequence")

@@ -1,33 +1,110 @@
 """One avatar, one backend: frames in, images out.
 
 :class:`AvatarRenderer` is what offline rendering, the benchmarks and the service use. It prepares what its backend
-needs once per avatar (the native backend packs the blendshapes for streaming reads) and renders batches of
-frames, reporting per-stage timings:
+needs once per avatar (the native backend packs the blendshapes for streaming reads, the cuda backend moves the
+avatar to the GPU) and renders batches of frames, reporting per-stage timings:
 
 - ``native``: the fused C++ pipeline (blend, pose correctives, eyelids, LBS, SH colour, projection, binning,
   compositing) for B frames in one call;
+- ``cuda``: :class:`DeviceAvatar` on the GPU (blend as one matrix product over the fp16/bf16/fp32 blendshape
+  matrix, :func:`render_core.deform.skin`, :func:`render_core.deform.shade`) and gsplat's rasterizer; outputs
+  stay on the GPU;
 - ``reference``: :func:`render_core.deform.blend`, :func:`render_core.deform.skin` and the torch rasterizer.
 """
 
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 
 import torch
 from torch import Tensor
 
-from .avatar import Avatar
+from .avatar import Avatar, Gaussians
 from .camera import Cameras
-from .deform import Frame, blend, skin
+from .deform import Frame, Splats, blend, shade, skin
 from .errors import ShapeError
-from .raster import RasterOutput, check_backend, native, render
+from .raster import RasterOutput, check_backend, gsplat_backend, native, render
+
+# Blendshape storage of a DeviceAvatar; compute is float32 whatever the storage.
+STORAGE_DTYPES: dict[str, torch.dtype] = {"fp32": torch.float32, "fp16": torch.float16, "bf16": torch.bfloat16}
+_PROPERTIES = ("means", "quats", "log_scales", "opacity_logits", "sh")
+
+
+class DeviceAvatar:
+    """An avatar resident on one device for the torch pipeline (the cuda backend's; any device works).
+
+    The K blendshapes of all five properties are packed once into one [K, N * D] matrix in ``precision``
+    ("fp32", "fp16" or "bf16"; default the avatar's), so Eq. 1 for B frames is one matrix product that reads the
+    blendshapes once per batch, added to the float32 neutral. Everything else (LBS weights, joints, pose
+    correctives, eyelids, mouth) is float32 on the device; :func:`render_core.deform.skin` and
+    :func:`render_core.deform.shade` run on it unchanged.
+    """
+
+    def __init__(self, avatar: Avatar, device: torch.device | str, precision: str | None = None):
+        precision = precision or avatar.precision
+        if precision not in STORAGE_DTYPES:
+            raise ValueError(f"precision must be one of {', '.join(STORAGE_DTYPES)}, got {precision!r}")
+        self.device, self.precision, self.store = torch.device(device), precision, STORAGE_DTYPES[precision]
+        n, k = avatar.num_gaussians, avatar.num_expressions
+        self.widths = [getattr(avatar.neutral, p)[0].numel() if n else 0 for p in _PROPERTIES]
+        self.sh_shape = tuple(avatar.neutral.sh.shape[1:])
+        self.base = torch.cat([getattr(avatar.neutral, p).reshape(n, -1).to(self.device, torch.float32)
+                               for p in _PROPERTIES], -1).reshape(-1)  # [N * D]
+        self.deltas = torch.cat([getattr(avatar.deltas, p).reshape(k, n, -1).to(self.device, self.store)
+                                 for p in _PROPERTIES], -1).reshape(k, -1)  # [K, N * D]
+        # What skin() reads, float32 on the device; the deltas live in the packed matrix only.
+        self.avatar = replace(avatar, deltas=avatar.deltas.map(lambda t: t[:, :0])).to(torch.float32, self.device)
+        self.raster_mode = avatar.raster_mode
+
+    @property
+    def nbytes(self) -> int:
+        return self.base.numel() * 4 + self.deltas.numel() * self.deltas.element_size()
+
+    def blend(self, expression: Tensor) -> Gaussians:  # [B, K] -> Gaussians with [B, N, ...] tensors
+        """Eq. 1, B(psi) = B0 + psi dB, for B frames as one [B, K] x [K, N * D] product in the storage precision
+        (coefficients rounded to it, accumulation as the device's matmul does), returned in float32."""
+        b, n = expression.shape[0], self.avatar.num_gaussians
+        e = expression.to(device=self.device, dtype=self.store)
+        rows = (self.base + (e @ self.deltas).float()).reshape(b, n, -1).split(self.widths, -1)
+        return Gaussians(means=rows[0], quats=rows[1], log_scales=rows[2], opacity_logits=rows[3][..., 0],
+                         sh=rows[4].reshape(b, n, *self.sh_shape))
+
+    def splats(self, frame: Frame) -> Splats:
+        """Blend and skin B frames (``frame`` already checked; moved to the device here)."""
+        frame = frame.to(torch.float32, self.device)
+        return skin(self.avatar, self.blend(frame.expression), frame)
+
+
+class _Clock:
+    """Stage marks: CUDA events on a GPU (one synchronize when read), wall-clock time elsewhere."""
+
+    def __init__(self, device: torch.device):
+        self.cuda = device.type == "cuda"
+        self.marks: list = []
+
+    def mark(self) -> None:
+        if self.cuda:
+            event = torch.cuda.Event(enable_timing=True)
+            event.record()
+            self.marks.append(event)
+        else:
+            self.marks.append(time.perf_counter())
+
+    def stages(self, names: tuple[str, ...]) -> dict[str, float]:
+        """Milliseconds between consecutive marks, one per name (waits for the GPU)."""
+        if self.cuda:
+            self.marks[-1].synchronize()
+            return {k: a.elapsed_time(b) for k, a, b in zip(names, self.marks[:-1], self.marks[1:], strict=True)}
+        return {k: (b - a) * 1e3 for k, a, b in zip(names, self.marks[:-1], self.marks[1:], strict=True)}
 
 
 class AvatarRenderer:
     """Renders frames of one avatar with one backend (default: native where built).
 
-    ``precision`` ("fp32" or "fp16") is the native backend's blendshape storage (default: the avatar's own);
-    ``simd`` forces a SIMD path (default: ``BLENDSPLAT_SIMD`` or the fastest); ``threads`` 0 uses all.
+    ``precision`` is the blendshape storage: the native backend's ("fp32" or "fp16") or the cuda backend's ("fp32",
+    "fp16" or "bf16"); default the avatar's own. ``simd`` forces a native SIMD path (default: ``BLENDSPLAT_SIMD``
+    or the fastest); ``threads`` 0 uses all. The cuda backend's outputs stay on the GPU.
     """
 
     def __init__(self, avatar: Avatar, backend: str | None = None, *, precision: str | None = None,
@@ -36,8 +113,10 @@ class AvatarRenderer:
         self.backend = check_backend(backend)
         self.simd, self.threads = simd, threads
         self.native = native.NativeAvatar(avatar, precision) if self.backend == "native" else None
+        self.device_avatar = (DeviceAvatar(avatar, gsplat_backend.device(), precision) if self.backend == "cuda"
+                              else None)
         # The reference path computes in float32 whatever the storage; cast fp16 avatars once, not per frame.
-        needs_cast = self.native is None and avatar.precision != "fp32"
+        needs_cast = self.backend == "reference" and avatar.precision != "fp32"
         self._compute_avatar = avatar.with_precision("fp32") if needs_cast else avatar
 
     @property
@@ -58,6 +137,8 @@ class AvatarRenderer:
                                                             cameras, background, simd=self.simd,
                                                             threads=self.threads)
             return RasterOutput(rgb, alpha, depth, timings=timings)
+        if self.device_avatar is not None:
+            return self._render_device(frame, cameras, background)
         with torch.no_grad():
             t0 = time.perf_counter()
             blended = blend(self._compute_avatar, frame.expression)
@@ -69,3 +150,26 @@ class AvatarRenderer:
         out.timings = {"blend": (t1 - t0) * 1e3, "lbs": (t2 - t1) * 1e3, "raster": (t3 - t2) * 1e3}
         return out
 
+    def _render_device(self, frame: Frame, cameras: Cameras, background: Tensor | None) -> RasterOutput:
+        """The cuda pipeline: blend, skin and shade on the device, then gsplat; stage times from CUDA events.
+
+        Per frame the host only queues kernels (no synchronisation before the timings are read at the end).
+        """
+        dev = self.device_avatar
+        clock = _Clock(dev.device)
+        with torch.no_grad():
+            cams = cameras.to(torch.float32, dev.device)
+            bg = None if background is None else background.to(dev.device, torch.float32)
+            clock.mark()
+            frame = frame.to(torch.float32, dev.device)
+            blended = dev.blend(frame.expression)
+            clock.mark()
+            splats = skin(dev.avatar, blended, frame)
+            clock.mark()
+            colors = shade(splats, cams.centres)
+            clock.mark()
+            out = gsplat_backend.rasterize(splats.means, splats.quats, splats.scales, splats.opacities, colors, cams,
+                                           bg, dev.raster_mode)
+            clock.mark()
+        out.timings = clock.stages(("blend", "lbs", "shade", "raster"))
+        return out

@@ -57,6 +57,16 @@ def available() -> bool:
     return unavailable_reason() is None
 
 
+def device() -> torch.device:
+    """Where the backend computes (the current CUDA device)."""
+    return torch.device("cuda")
+
+
+def device_name() -> str:
+    """The GPU's name, for reports."""
+    return torch.cuda.get_device_name(device())
+
+
 def require() -> None:
     """RuntimeError naming why the CUDA backend is unavailable (no-op when it is available)."""
     reason = unavailable_reason()
@@ -183,7 +193,7 @@ def rasterize(
     """
     rasterization = _rasterization()
     home = means.device
-    gpu = home if home.type == "cuda" else torch.device("cuda")
+    gpu = home if home.type == "cuda" else device()
     colors_out, alphas, meta = rasterization(**gsplat_arguments(means, quats, scales, opacities, colors, cameras,
                                                                 background, mode, device=gpu))
     return _moved(from_gsplat(colors_out, alphas, meta), home)
