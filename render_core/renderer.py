@@ -113,8 +113,10 @@ class AvatarRenderer:
         self.backend = check_backend(backend)
         self.simd, self.threads = simd, threads
         self.native = native.NativeAvatar(avatar, precision) if self.backend == "native" else None
-        self.device_avatar = (DeviceAvatar(avatar, gsplat_backend.device(), precision) if self.backend == "cuda"
-                              else None)
+        self.device_avatar = None
+        if self.backend == "cuda":
+            gsplat_backend.build_extension()  # gsplat compiles its CUDA code on first use: now, not at a frame
+            self.device_avatar = DeviceAvatar(avatar, gsplat_backend.device(), precision)
         # The reference path computes in float32 whatever the storage; cast fp16 avatars once, not per frame.
         needs_cast = self.backend == "reference" and avatar.precision != "fp32"
         self._compute_avatar = avatar.with_precision("fp32") if needs_cast else avatar

@@ -46,7 +46,7 @@ def _cuda_backend(splats: Splats, cameras: Cameras, background: Tensor | None, m
     colors = shade(splats, cameras.centres.to(splats.means.dtype))
     out = gsplat_backend.rasterize(splats.means, splats.quats, splats.scales, splats.opacities, colors, cameras,
                                    background, mode)
-    return gsplat_backend._moved(out, home)
+    return gsplat_backend.moved(out, home)
 
 
 KNOWN_BACKENDS: tuple[str, ...] = ("cuda", "native", "reference")

@@ -167,7 +167,8 @@ def from_gsplat(
     return out
 
 
-def _moved(out: RasterOutput, device: torch.device) -> RasterOutput:
+def moved(out: RasterOutput, device: torch.device) -> RasterOutput:
+    """``out`` with its tensors on ``device`` (differentiably; the same object when already there)."""
     if out.rgb.device == device:
         return out
     return RasterOutput(out.rgb.to(device), out.alpha.to(device), out.depth.to(device),
@@ -196,7 +197,7 @@ def rasterize(
     gpu = home if home.type == "cuda" else device()
     colors_out, alphas, meta = rasterization(**gsplat_arguments(means, quats, scales, opacities, colors, cameras,
                                                                 background, mode, device=gpu))
-    return _moved(from_gsplat(colors_out, alphas, meta), home)
+    return moved(from_gsplat(colors_out, alphas, meta), home)
 
 
 def rasterize_differentiable(
