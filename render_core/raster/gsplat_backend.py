@@ -41,7 +41,7 @@ PACKED = False  # [B, 1, N, ...] outputs: no nnz compaction (most of a head's Ga
 def unavailable_reason() -> str | None:
     """Why the CUDA backend cannot run here (None when it can): no CUDA device, or gsplat missing / not 1.5.x."""
     if not torch.cuda.is_available():
-        built = f"CUDA {torch.version.cuda}" if torch.version.cuda else "a CPU-only build"
+        built = f"built with CUDA {torch.version.cuda}" if torch.version.cuda else "a CPU-only build"
         return f"no CUDA device (torch.cuda.is_available() is False; torch {torch.__version__} is {built})"
     try:
         import gsplat
