@@ -1,10 +1,12 @@
 """Closest surface points and per-blendshape displacement magnitudes (METHOD.md sections 3 and 4).
 
 ``d_{i,k}`` is the displacement magnitude, from M0 to M_k, of the neutral-mesh point closest to Gaussian i: the
-barycentric interpolation, at that point, of the vertices' ``|expression_basis[k]|``. Computed per Gaussian
-directly (no 256^3 grid): the closest point is searched among the triangles incident to the point's few nearest
-vertices, which finds the true closest triangle for points on or near the surface (every Gaussian at
-initialisation; densified children copy their parent's values instead of looking them up).
+barycentric interpolation, at that point, of the vertices' ``|expression_basis[k]|``; the LBS weights of a point
+are the same interpolation of the vertices' weights. :func:`surface_values` computes both per point directly: the
+closest point is searched among the triangles incident to the point's few nearest vertices, which finds the true
+closest triangle for points on or near the surface (every Gaussian at initialisation). Densified and moved
+Gaussians get them from the 256^3 lookup grid of :mod:`.grids`, whose nodes use the same triangle test
+(:class:`Triangles`, :func:`closest_among`) with an exact per-brick candidate set.
 """
 
 from __future__ import annotations
@@ -15,16 +17,103 @@ from torch import Tensor
 from ..facemodel import FaceModel
 
 
-def _closest_on_segment(p: Tensor, a: Tensor, b: Tensor) -> tuple[Tensor, Tensor]:
-    """Closest point of segments ab to p ([..., 3]) and its parameter t in [0, 1]."""
-    ab = b - a
-    t = ((p - a) * ab).sum(-1) / (ab * ab).sum(-1).clamp_min(1e-30)
-    t = t.clamp(0.0, 1.0)
-    return a + t[..., None] * ab, t
+class Triangles:
+    """A mesh's triangles prepared for closest-point queries (float64, one contiguous array per scalar).
+
+    With w = q - a, e0 = b - a, e1 = c - a, the squared distance from q to the triangle's plane foot and to each
+    edge is a function of the dot products ww, w.e0, w.e1 (per query) and e0.e0, e0.e1, e1.e1 (per triangle), so
+    a query touches 9 numbers per candidate triangle and no 3-vectors.
+    """
+
+    def __init__(self, vertices: Tensor, faces: Tensor):
+        v = vertices.detach().double().cpu()
+        f = faces.detach().long().cpu()
+        a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+        e0, e1 = b - a, c - a
+        self.vertices, self.faces = v, f
+        self.a = a.t().contiguous()  # [3, F]
+        self.e0 = e0.t().contiguous()
+        self.e1 = e1.t().contiguous()
+        self.d00 = (e0 * e0).sum(1)
+        self.d01 = (e0 * e1).sum(1)
+        self.d11 = (e1 * e1).sum(1)
+
+    def __len__(self) -> int:
+        return int(self.faces.shape[0])
+
+    def _dots(self, points: Tensor, tri: Tensor) -> tuple[Tensor, ...]:
+        """(ww, w.e0, w.e1, d00, d01, d11) for points [P, 3] and triangles [P] or [P, m]."""
+        q = points.double()
+        shape = (-1,) + (1,) * (tri.dim() - 1)
+        w = [q[:, i].reshape(shape) - self.a[i][tri] for i in range(3)]
+        ww = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
+        d20 = w[0] * self.e0[0][tri] + w[1] * self.e0[1][tri] + w[2] * self.e0[2][tri]
+        d21 = w[0] * self.e1[0][tri] + w[1] * self.e1[1][tri] + w[2] * self.e1[2][tri]
+        return ww, d20, d21, self.d00[tri], self.d01[tri], self.d11[tri]
+
+    @staticmethod
+    def _options(ww, d20, d21, d00, d01, d11):
+        """Squared distances and parameters of the four closest-point options: the plane foot (inside or not) and
+        the edges ab, bc, ac (each clamped to its segment)."""
+        den = (d00 * d11 - d01 * d01).clamp_min(1e-30)
+        bv = (d11 * d20 - d01 * d21) / den
+        bw = (d00 * d21 - d01 * d20) / den
+        inside = (bv >= 0) & (bw >= 0) & (bv + bw <= 1)
+        foot = ww - bv * d20 - bw * d21  # |w - (bv e0 + bw e1)|^2 at the plane foot
+        t_ab = (d20 / d00.clamp_min(1e-30)).clamp(0, 1)
+        ab = ww - 2 * t_ab * d20 + t_ab * t_ab * d00
+        t_ac = (d21 / d11.clamp_min(1e-30)).clamp(0, 1)
+        ac = ww - 2 * t_ac * d21 + t_ac * t_ac * d11
+        qb = ww - 2 * d20 + d00  # |q - b|^2
+        dot = d21 - d20 - d01 + d00  # (q - b).(c - b)
+        e2 = d11 - 2 * d01 + d00  # |c - b|^2
+        t_bc = (dot / e2.clamp_min(1e-30)).clamp(0, 1)
+        bc = qb - 2 * t_bc * dot + t_bc * t_bc * e2
+        return inside, foot, (bv, bw), (ab, t_ab), (bc, t_bc), (ac, t_ac)
+
+    def distances(self, points: Tensor, candidates: Tensor) -> Tensor:
+        """Squared distance [P, m] from each point [P, 3] to each of its candidate triangles [P, m]."""
+        inside, foot, _, (ab, _), (bc, _), (ac, _) = self._options(*self._dots(points, candidates))
+        return torch.where(inside, foot, torch.minimum(torch.minimum(ab, bc), ac)).clamp_min(0.0)
+
+    def closest(self, points: Tensor, tri: Tensor) -> tuple[Tensor, Tensor]:
+        """The closest point of triangle ``tri[i]`` [P] to point i [P, 3]: (barycentric [P, 3], squared distance)."""
+        inside, foot, (bv, bw), (ab, t_ab), (bc, t_bc), (ac, t_ac) = self._options(*self._dots(points, tri))
+        zero = torch.zeros_like(ab)
+        best = torch.where(inside, foot, torch.inf)
+        bary = torch.stack([1 - bv - bw, bv, bw], -1)
+        for dist, b in ((ab, (1 - t_ab, t_ab, zero)), (bc, (zero, 1 - t_bc, t_bc)), (ac, (1 - t_ac, zero, t_ac))):
+            better = ~inside & (dist < best)
+            bary = torch.where(better[:, None], torch.stack(b, -1), bary)
+            best = torch.where(better, dist, best)
+        bary = bary.clamp_min(0.0)
+        return bary / bary.sum(1, keepdim=True).clamp_min(1e-30), best.clamp_min(0.0)
+
+
+def closest_among(mesh: Triangles, points: Tensor, candidates: Tensor,
+                  valid: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
+    """The closest point to each point among its candidate triangles.
+
+    Args:
+        mesh: the prepared triangles; points: [P, 3].
+        candidates: [P, m] triangle indices (any value where not ``valid``).
+        valid: [P, m] bool, or None (all valid). Every row needs at least one valid candidate.
+
+    Returns:
+        (triangle index [P] int64, barycentric [P, 3] float64 (>= 0, summing to 1), squared distance [P]).
+    """
+    cand = candidates.clamp(0, len(mesh) - 1) if valid is not None else candidates
+    dist = mesh.distances(points, cand)
+    if valid is not None:
+        dist = torch.where(valid, dist, torch.inf)
+    j = dist.argmin(1)
+    tri = cand.gather(1, j[:, None]).squeeze(1)
+    bary, d2 = mesh.closest(points, tri)
+    return tri, bary, d2
 
 
 def closest_points(vertices: Tensor, faces: Tensor, points: Tensor, *, neighbours: int = 16,
-                   chunk: int = 4096) -> tuple[Tensor, Tensor]:
+                   chunk: int = 1024) -> tuple[Tensor, Tensor]:
     """For each point, the closest triangle of the mesh and the barycentric coordinates of the closest point on it.
 
     Candidates: the triangles incident to the ``neighbours`` nearest vertices (exact for points on or near the
@@ -33,8 +122,8 @@ def closest_points(vertices: Tensor, faces: Tensor, points: Tensor, *, neighbour
     Returns:
         (triangle index [P] int64, barycentric [P, 3] float64, summing to 1, all >= 0).
     """
-    v = vertices.double()
-    f = faces.long()
+    mesh = Triangles(vertices, faces)
+    v, f = mesh.vertices, mesh.faces
     nv = v.shape[0]
     # Vertex -> incident triangles, padded with -1.
     vert_of = f.flatten()
@@ -50,54 +139,40 @@ def closest_points(vertices: Tensor, faces: Tensor, points: Tensor, *, neighbour
 
     tri_out, bary_out = [], []
     for p in points.double().split(chunk):
+        if not len(p):
+            continue
         near = torch.cdist(p, v).topk(min(neighbours, nv), largest=False).indices  # [c, n]
         cand = incident[near].reshape(len(p), -1)  # [c, n * valence]
-        valid = cand >= 0
-        cand_safe = cand.clamp_min(0)
-        tri = v[f[cand_safe]]  # [c, m, 3 corners, 3]
-        a, b, c = tri[..., 0, :], tri[..., 1, :], tri[..., 2, :]
-        q = p[:, None, :].expand_as(a)
-        # Projection onto the plane, barycentric by areas.
-        e0, e1 = b - a, c - a
-        d00, d01, d11 = (e0 * e0).sum(-1), (e0 * e1).sum(-1), (e1 * e1).sum(-1)
-        w = q - a
-        d20, d21 = (w * e0).sum(-1), (w * e1).sum(-1)
-        den = (d00 * d11 - d01 * d01).clamp_min(1e-30)
-        bv = (d11 * d20 - d01 * d21) / den
-        bw = (d00 * d21 - d01 * d20) / den
-        bu = 1 - bv - bw
-        inside = (bu >= 0) & (bv >= 0) & (bw >= 0)
-        best_bary = torch.stack([bu, bv, bw], -1)
-        best_pt = a + bv[..., None] * e0 + bw[..., None] * e1
-        best_d = torch.where(inside, (best_pt - q).square().sum(-1), torch.inf)
-        # Edges (for projections outside the triangle).
-        for (i0, i1), (x0, x1) in (((0, 1), (a, b)), ((1, 2), (b, c)), ((0, 2), (a, c))):
-            pt, t = _closest_on_segment(q, x0, x1)
-            dist = (pt - q).square().sum(-1)
-            better = ~inside & (dist < best_d)
-            eb = torch.zeros_like(best_bary)
-            eb[..., i0] = 1 - t
-            eb[..., i1] = t
-            best_bary = torch.where(better[..., None], eb, best_bary)
-            best_d = torch.where(better, dist, best_d)
-        best_d = torch.where(valid, best_d, torch.inf)
-        j = best_d.argmin(1)
-        rows = torch.arange(len(p))
-        tri_out.append(cand_safe[rows, j])
-        bary_out.append(best_bary[rows, j].clamp_min(0.0))
+        tri, bary, _ = closest_among(mesh, p, cand, cand >= 0)
+        tri_out.append(tri)
+        bary_out.append(bary)
     tri_idx = torch.cat(tri_out) if tri_out else torch.zeros(0, dtype=torch.long)
     bary = torch.cat(bary_out) if bary_out else torch.zeros(0, 3, dtype=torch.float64)
-    bary = bary / bary.sum(1, keepdim=True).clamp_min(1e-30)
     return tri_idx, bary
+
+
+def values_at(model: FaceModel, tri: Tensor, bary: Tensor) -> tuple[Tensor, Tensor]:
+    """LBS weights [P, J] (rows normalised to sum 1) and displacement magnitudes d [K, P] of the surface points
+    (triangle [P], barycentric [P, 3]): the barycentric interpolation of the vertices' values, float32."""
+    corners = model.faces.long()[tri]  # [P, 3]
+    b = bary.double()
+    lbs = (model.lbs_weights.double()[corners] * b[..., None]).sum(1)
+    lbs = lbs / lbs.sum(1, keepdim=True).clamp_min(1e-30)
+    mag = model.expression_basis.double().norm(dim=-1)  # [K, V]
+    d = (mag[:, corners] * b[None]).sum(-1)
+    return lbs.float(), d.float()
+
+
+def surface_values(model: FaceModel, points: Tensor) -> tuple[Tensor, Tensor]:
+    """(LBS weights [P, J], d [K, P]) of the neutral-mesh point closest to each point [P, 3] (computed directly)."""
+    tri, bary = closest_points(model.template, model.faces, points)
+    return values_at(model, tri, bary)
 
 
 def displacement_magnitudes(model: FaceModel, points: Tensor) -> Tensor:
     """d [K, P]: per blendshape k, |displacement| of the neutral-mesh point closest to each point (barycentric
     interpolation of the vertices' displacement norms, float32)."""
-    tri, bary = closest_points(model.template, model.faces, points)
-    corners = model.faces.long()[tri]  # [P, 3]
-    mag = model.expression_basis.double().norm(dim=-1)  # [K, V]
-    return (mag[:, corners] * bary[None]).sum(-1).float()
+    return surface_values(model, points)[1]
 
 
 def consistency_range(model: FaceModel) -> tuple[float, float]:
