@@ -243,9 +243,10 @@ def test_bundle_renders_the_recorded_psnr(trained, toy):
 
 
 def test_resume_equals_an_uninterrupted_run(toy, head, tmp_path):
-    # Densification at iterations 2, 4 and 6 (splits draw from the generator), a checkpoint at 3.
+    # Densification at iterations 2, 4 and 6 (splits draw from the generator, children look up the grid, screen
+    # radii are tracked from iteration 2 and prune from 4), a checkpoint at 3.
     cfg = TOY.with_(checkpoint_every=3, sh_every=2, densify_from=1, densify_every=2, densify_until=6,
-                    densify_grad=2e-4)
+                    densify_grad=2e-4, prune_big_after=3, max_screen_radius=8.0)
     straight = train(toy, tmp_path / "a.bsplat", workdir=tmp_path / "a", preset=cfg, iterations=6, progress=False,
                      facemodel=head, seed=3)
     part = train(toy, tmp_path / "b.bsplat", workdir=tmp_path / "b", preset=cfg, iterations=6, progress=False,
@@ -255,6 +256,8 @@ def test_resume_equals_an_uninterrupted_run(toy, head, tmp_path):
                     facemodel=head, resume=True)
     assert resumed["resumed_from"] == 3 and resumed["iterations"] == 6
     assert straight["gaussians"] > TOY.gaussians and straight["gaussians"] == resumed["gaussians"]
+    assert sum(d["pruned_screen"] for d in straight["densified"]) > 0
+    assert sum(d["looked_up"] for d in straight["densified"]) > 0
     a = load_checkpoint(tmp_path / "a" / "checkpoints" / "ckpt_0000006.pt")
     b = load_checkpoint(tmp_path / "b" / "checkpoints" / "ckpt_0000006.pt")
     ta, tb = a["model"]["tensors"], b["model"]["tensors"]

@@ -4,18 +4,23 @@ Statistics: after each backward, the view-space positional gradient of every fac
 3DGS's normalised units (the pixel-space gradient of the projected centre times (W/2, H/2)), recovered from the
 gradient of the posed world-space centre through the pinhole model (dL/du = dL/dx_cam * z / f; the small part of
 the gradient that flows through the covariance's dependence on the centre is not separated out). The norm is
-accumulated for every Gaussian with a non-zero gradient (the visible ones).
+accumulated for every Gaussian with a non-zero gradient (the visible ones). When screen-size pruning can apply,
+also the largest screen radius of every visible Gaussian since the last step (:func:`screen_radii`: 3 sigma of the
+larger eigenvalue of the blurred 2D covariance, as 3DGS; the rasterizer does not return radii).
 
 Every ``densify_every`` iterations in [densify_from, densify_until]:
 - Gaussians with a mean accumulated gradient >= ``densify_grad``: cloned (an exact copy) if their largest scale is
   <= ``percent_dense`` x the scene extent, else split into two children sampled from the parent's Gaussian with
   scales / 1.6 (the parent is removed);
 - pruned: neutral opacity < ``prune_opacity``, and after ``prune_big_after`` iterations (3DGS: 3000) also a largest
-  scale > 0.1 x extent (screen radius > 20 px is not tested: the rasterizer does not return radii);
+  scale > 0.1 x extent or a screen radius > ``max_screen_radius`` (20 px) in some frame since the last step;
 - capped at ``max_gaussians`` (the largest gradients first).
-Children copy their parent's blendshape entries (dG_init pairs, dG_hat pairs or rows, d, c, LBS weights, pose
-correctives, eyelid offsets); their Adam moments start at zero, survivors keep theirs. The mouth interior is not
-densified. The scene extent is the largest distance of the initial face Gaussians from their centroid.
+Children copy their parent's blendshape entries (dG_init pairs, dG_hat pairs or rows, pose correctives, eyelid
+offsets); their Adam moments start at zero, survivors keep theirs. With a lookup grid (:mod:`.grids`, the
+paper's), children and the Gaussians that moved more than a grid cell since their values were set get their LBS
+weights and displacement magnitudes d (hence c = max(f(d), 0) and the set of weighted pairs) from the grid
+(:func:`assign_surface`); without one they copy their parent's. The mouth interior is not densified. The scene
+extent is the largest distance of the initial face Gaussians from their centroid.
 """
 
 from __future__ import annotations
@@ -24,11 +29,37 @@ import torch
 from torch import Tensor, nn
 
 from ..camera import Cameras
+from ..raster.reference import project
 from ..rotation import quat_to_matrix
+from .geometry import consistency_weights
+from .grids import LookupGrid
 from .model import PROPS, TrainableAvatar
 
 PERCENT_DENSE = 0.01
 SPLIT_SCALE = 1.6
+MAX_SCREEN_RADIUS = 20.0  # pixels (3DGS's max_screen_size)
+
+
+def screen_radii(
+    means: Tensor,  # [N, 3] posed world-space centres
+    quats: Tensor,  # [N, 4] wxyz
+    scales: Tensor,  # [N, 3] standard deviations
+    opacities: Tensor,  # [N]
+    cameras: Cameras,  # one camera
+) -> Tensor:
+    """Screen radius [N] in pixels of each Gaussian seen by ``cameras[0]``: ceil(3 sqrt(lambda_max)) of its blurred
+    2D covariance (the projection of METHOD.md section 9: clamped Jacobian, + 0.3 on the diagonal), as 3DGS's
+    rasterizer reports it; 0 for Gaussians that are culled (behind the near plane, too transparent, off screen)."""
+    with torch.no_grad():
+        cams = Cameras(cameras.K[:1], cameras.R[:1], cameras.t[:1], cameras.width, cameras.height)
+        proj = project(means[None].detach(), quats[None].detach(), scales[None].detach(),
+                       opacities[None].detach(), cams.to(means.dtype))
+        a, b, c = proj.conics[0].unbind(-1)  # inverse of the blurred covariance [[s00, s01], [s01, s11]]
+        det = 1.0 / (a * c - b * b).clamp_min(1e-30)
+        s00, s11 = c * det, a * det
+        mid = 0.5 * (s00 + s11)
+        lam = mid + (mid * mid - det).clamp_min(0.0).sqrt()
+        return torch.where(proj.visible[0], torch.ceil(3.0 * lam.clamp_min(0.0).sqrt()), 0.0)
 
 
 class Densifier:
@@ -38,15 +69,24 @@ class Densifier:
         self.extent = float(extent)
         self.grad_accum = torch.zeros(n)
         self.denom = torch.zeros(n)
+        self.max_radii = torch.zeros(n)  # the largest screen radius (pixels) since the last step
 
     def state(self) -> dict:
-        return {"extent": self.extent, "grad_accum": self.grad_accum.clone(), "denom": self.denom.clone()}
+        return {"extent": self.extent, "grad_accum": self.grad_accum.clone(), "denom": self.denom.clone(),
+                "max_radii": self.max_radii.clone()}
 
     @classmethod
     def from_state(cls, state: dict) -> Densifier:
         d = cls(0, state["extent"])
         d.grad_accum, d.denom = state["grad_accum"].clone(), state["denom"].clone()
+        d.max_radii = state["max_radii"].clone() if "max_radii" in state else torch.zeros_like(d.denom)
         return d
+
+    def observe_radii(self, means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor,
+                      cameras: Cameras) -> None:
+        """Keep the largest screen radius of every face Gaussian (posed [N, ...] tensors, :func:`screen_radii`)."""
+        r = screen_radii(means, quats, scales, opacities, cameras).to(self.max_radii)
+        self.max_radii = torch.maximum(self.max_radii, r)
 
     def accumulate(self, posed_means: Tensor, grad: Tensor, cameras: Cameras) -> None:
         """Add one frame's view-space gradient norms (``posed_means``/``grad``: [N, 3] world-space face Gaussians)."""
@@ -61,15 +101,24 @@ class Densifier:
         self.denom += visible.to(self.denom.dtype)
 
     def step(self, model: TrainableAvatar, opt: torch.optim.Optimizer, gen: torch.Generator, grad_threshold: float,
-             prune_opacity: float, max_gaussians: int, prune_big: bool = False) -> dict:
-        """Densify and prune; returns counts (cloned, split, pruned, gaussians)."""
+             prune_opacity: float, max_gaussians: int, prune_big: bool = False, *,
+             max_screen_radius: float = MAX_SCREEN_RADIUS, grid: LookupGrid | None = None) -> dict:
+        """Densify and prune; returns counts (cloned, split, pruned, pruned_screen, looked_up, gaussians).
+
+        ``prune_big``: also prune Gaussians larger than 0.1 x extent in the world or ``max_screen_radius`` pixels
+        on screen (the largest radius :meth:`observe_radii` saw since the last step). ``grid``: where children and
+        moved Gaussians get their LBS weights and d (None: children copy their parent's)."""
         n = model.num_gaussians
         avg = self.grad_accum / self.denom.clamp_min(1)
         with torch.no_grad():
             scale = model.log_scales.detach().exp().amax(1)
             prune = torch.sigmoid(model.opacity_logits.detach()) < prune_opacity
+            screen = torch.zeros(n, dtype=torch.bool)
             if prune_big:
                 prune |= scale > 0.1 * self.extent
+                if len(self.max_radii) == n:
+                    screen = (self.max_radii > max_screen_radius) & ~prune
+                    prune |= screen
             chosen = (avg >= grad_threshold) & ~prune
             room = max(max_gaussians - int((~prune).sum()), 0)
             big = scale > PERCENT_DENSE * self.extent
@@ -101,10 +150,19 @@ class Densifier:
                 new_scales[start:] = torch.log(s / SPLIT_SCALE).repeat(2, 1)
                 updates = {"means": new_means, "log_scales": new_scales}
             reindex(model, opt, src, fresh, updates)
+            looked_up = 0
+            if grid is not None:
+                moved = (model.means.detach() - model.lookup_at).norm(dim=1) > grid.cell
+                idx = (fresh | moved).nonzero().flatten()
+                if len(idx):
+                    lbs, d = grid.lookup(model.means.detach()[idx])
+                    assign_surface(model, opt, idx, lbs, d)
+                looked_up = len(idx)
         self.grad_accum = torch.zeros(model.num_gaussians)
         self.denom = torch.zeros(model.num_gaussians)
+        self.max_radii = torch.zeros(model.num_gaussians)
         return {"cloned": len(clone_idx), "split": len(split_idx), "pruned": int(prune.sum()),
-                "gaussians": model.num_gaussians}
+                "pruned_screen": int(screen.sum()), "looked_up": looked_up, "gaussians": model.num_gaussians}
 
 
 def _expand_pairs(pair_n: Tensor, src: Tensor, n_old: int) -> tuple[Tensor, Tensor]:
@@ -136,6 +194,7 @@ def reindex(model: TrainableAvatar, opt: torch.optim.Optimizer, src: Tensor, fre
     for name in ("d", "weights"):
         plan[name] = ("rows", 1)
     plan["lbs_weights"] = ("rows", 0)
+    plan["lookup_at"] = ("rows", 0)
     for prop in PROPS:
         plan["init_" + prop] = ("init",)
         hat = model.hat(prop)
@@ -162,19 +221,10 @@ def reindex(model: TrainableAvatar, opt: torch.optim.Optimizer, src: Tensor, fre
         return out
 
     params = dict(model.named_parameters())
-    by_param = {id(g["params"][0]): g for g in opt.param_groups}
     for name in plan:
         if name in params:
-            old = params[name]
-            new = nn.Parameter(updates[name] if name in updates else apply(name, old.detach()))
-            group = by_param.get(id(old))
-            if group is not None:
-                state = opt.state.pop(old, None)
-                if state:
-                    opt.state[new] = {k: (apply(name, v, moment=True) if k in ("exp_avg", "exp_avg_sq") else v)
-                                      for k, v in state.items()}
-                group["params"][0] = new
-            setattr(model, name, new)
+            value = updates[name] if name in updates else apply(name, params[name].detach())
+            _swap(model, opt, name, value, lambda v, name=name: apply(name, v, moment=True))
         else:
             model.register_buffer(name, apply(name, getattr(model, name)))
     model.register_buffer("init_n", init_child)
@@ -183,3 +233,54 @@ def reindex(model: TrainableAvatar, opt: torch.optim.Optimizer, src: Tensor, fre
         model.pose_correctives = model.pose_correctives.index_select(1, src)
     if model.eyelid_offsets is not None:
         model.eyelid_offsets = model.eyelid_offsets.index_select(1, src)
+
+
+def _swap(model: TrainableAvatar, opt: torch.optim.Optimizer, name: str, value: Tensor, moments) -> None:
+    """Replace parameter ``name`` by ``value`` in the model and the optimizer; Adam's moments go through
+    ``moments`` (old moment -> new moment), other state (the step) is kept."""
+    old = getattr(model, name)
+    new = nn.Parameter(value)
+    for group in opt.param_groups:
+        if group["params"][0] is old:
+            state = opt.state.pop(old, None)
+            if state:
+                opt.state[new] = {k: (moments(v) if k in ("exp_avg", "exp_avg_sq") else v) for k, v in state.items()}
+            group["params"][0] = new
+            break
+    setattr(model, name, new)
+
+
+def assign_surface(model: TrainableAvatar, opt: torch.optim.Optimizer, index: Tensor, lbs: Tensor,
+                   d: Tensor) -> None:
+    """Give face Gaussians ``index`` [P] new LBS weights [P, J] and displacement magnitudes d [K, P] (looked up at
+    their current positions, which become ``lookup_at``). The consistency weights c = max(f(d), 0) follow, and
+    with them the weighted pairs: a pair that stays keeps its residual dG_hat and Adam moments, a new pair (c
+    became > 0) starts at zero, a pair whose c became 0 is dropped. dG_init is not touched."""
+    with torch.no_grad():
+        model.lbs_weights[index] = lbs.to(model.lbs_weights)
+        model.d[:, index] = d.to(model.d)
+        model.lookup_at[index] = model.means.detach()[index]
+        model.weights = consistency_weights(model.d, model.eps, model.d_max)
+        n = model.num_gaussians
+        new_k, new_n = (model.weights > 0).nonzero(as_tuple=True)
+        old_key, order = torch.sort(model.hat_k * n + model.hat_n)
+        new_key = new_k * n + new_n
+        if len(old_key):
+            pos = torch.searchsorted(old_key, new_key).clamp(max=len(old_key) - 1)
+            found = old_key[pos] == new_key
+            src = order[pos]
+        else:
+            found = torch.zeros(len(new_key), dtype=torch.bool)
+            src = torch.zeros(len(new_key), dtype=torch.long)
+
+        def carry(t: Tensor) -> Tensor:
+            out = t.new_zeros(len(new_key), *t.shape[1:])
+            out[found] = t[src[found]]
+            return out
+
+        for prop in PROPS:
+            hat = model.hat(prop)
+            if hat is not None and model.weighted(prop):
+                _swap(model, opt, "hat_" + prop, carry(hat.detach()), carry)
+        model.hat_k, model.hat_n = new_k, new_n
+        model.hat_w = model.weights[new_k, new_n].clone()

@@ -35,6 +35,7 @@ from ..initialize import init_avatar
 from ..raster import native
 from . import losses
 from .densify import Densifier
+from .grids import lookup_grid
 from .model import TrainableAvatar
 from .presets import Preset, get_preset
 
@@ -157,7 +158,8 @@ def forward(model: TrainableAvatar, frame: Frame, cameras: Cameras, sh_degree: i
             capture: dict | None = None, device: str = "cpu") -> tuple[torch.Tensor, torch.Tensor]:
     """Render B frames of the model (differentiable): rgb [B, H, W, 3], alpha [B, H, W] on a black background.
 
-    ``capture``: receives the posed centres ("means", [B, N + M, 3], their gradient kept) for densification.
+    ``capture``: receives the posed centres ("means", [B, N + M, 3], their gradient kept) and the posed splats
+    ("splats") for densification.
     ``device``: where the rasterization step runs (:func:`rasterize`)."""
     clock = time.perf_counter
     t0 = clock()
@@ -168,6 +170,7 @@ def forward(model: TrainableAvatar, frame: Frame, cameras: Cameras, sh_degree: i
     if capture is not None and splats.means.requires_grad:
         splats.means.retain_grad()
         capture["means"] = splats.means
+        capture["splats"] = splats
     t2 = clock()
     colors = shade(splats, cameras.centres.to(splats.means))
     t3 = clock()
@@ -340,6 +343,7 @@ def train(
         prior_seconds = float(state["seconds"])
         _truncate_log(workdir / "log.jsonl", start)
     opt = make_optimizer(model, cfg)
+    grid = lookup_grid(fm, cfg.grid_resolution) if cfg.densify and cfg.grid_resolution else None
     if state is not None:
         opt.load_state_dict(state["optimizer"])
         del state
@@ -395,9 +399,14 @@ def train(
                 n = model.num_gaussians
                 posed = capture["means"]
                 densifier.accumulate(posed[0, :n].detach(), posed.grad[0, :n], cams)
+                if it > cfg.prune_big_after - cfg.densify_every:  # screen radii count from the step before
+                    sp = capture["splats"]
+                    densifier.observe_radii(sp.means[0, :n], sp.quats[0, :n], sp.scales[0, :n], sp.opacities[0, :n],
+                                            cams)
                 if cfg.densify_from < it and it % cfg.densify_every == 0:
                     counts = densifier.step(model, opt, gen, cfg.densify_grad, cfg.prune_opacity, cfg.max_gaussians,
-                                            prune_big=it > cfg.prune_big_after)
+                                            prune_big=it > cfg.prune_big_after,
+                                            max_screen_radius=cfg.max_screen_radius, grid=grid)
                     log.info("iteration %d: %s", it, counts)
                     densified.append({"iteration": it, **counts})
                 capture = posed = None

@@ -11,7 +11,7 @@ model's displacement magnitudes (:mod:`.geometry`). Switches (``consistency``) f
 - ``"frozen"``: dG = dG_init, no residual is optimised.
 
 The neutral Gaussians and the mouth interior are optimised too; LBS weights, pose correctives and eyelid offsets
-stay at their initial values.
+are not optimised (densification may look LBS weights and d up again in the lookup grid, :mod:`.densify`).
 
 Storage is sparse where the method allows it (the blend, its backward and Adam scale with the pairs stored, not
 with K x N): dG_init is stored for its non-zero (Gaussian, blendshape) pairs only (``init_k``, ``init_n``: about
@@ -64,8 +64,10 @@ class TrainableAvatar(nn.Module):
     ``mouth_<same>`` (mouth interior) and ``hat_<prop>`` (dG_hat; [P, ...] over the pairs ``hat_k, hat_n`` when
     weighted, [K, N, ...] when not; absent when frozen).
     Buffers: ``init_<prop>`` [Pi, ...] over the pairs ``init_k, init_n`` (dG_init), ``d`` and ``weights`` [K, N]
-    (c = max(f(d), 0)), ``hat_k, hat_n, hat_w`` (the weighted pairs and their c), ``lbs_weights``,
-    ``joint_positions``, ``mouth_group``; plain attributes ``pose_correctives`` and ``eyelid_offsets`` (or None).
+    (c = max(f(d), 0)), ``hat_k, hat_n, hat_w`` (the weighted pairs and their c), ``lbs_weights``, ``lookup_at``
+    [N, 3] (the neutral positions where ``lbs_weights`` and ``d`` were set: at initialisation, or the last grid
+    lookup of :mod:`.densify`), ``joint_positions``, ``mouth_group``; plain attributes ``pose_correctives`` and
+    ``eyelid_offsets`` (or None).
     """
 
     def __init__(self, avatar: Avatar, d: Tensor, eps: float, d_max: float, consistency: str = "all"):
@@ -114,6 +116,7 @@ class TrainableAvatar(nn.Module):
                 shape = (len(hk), *tail) if self.weighted(prop) else (k, n, *tail)
                 self.register_parameter("hat_" + prop, nn.Parameter(torch.zeros(shape)))
         self.register_buffer("lbs_weights", avatar.lbs_weights.clone())
+        self.register_buffer("lookup_at", avatar.neutral.means.clone())  # where lbs_weights and d were set
         self.register_buffer("joint_positions", avatar.joint_positions.clone())
         self.register_buffer("mouth_group", avatar.mouth_group.clone())
         self.pose_correctives = avatar.pose_correctives.clone() if avatar.pose_correctives is not None else None
@@ -145,6 +148,8 @@ class TrainableAvatar(nn.Module):
                 model.register_buffer(name, t.clone())
         model.pose_correctives = state["tensors"].get("pose_correctives")
         model.eyelid_offsets = state["tensors"].get("eyelid_offsets")
+        if "lookup_at" not in state["tensors"]:  # a checkpoint from before the lookup grid
+            model.register_buffer("lookup_at", model.means.detach().clone())
         return model
 
     def state(self) -> dict:

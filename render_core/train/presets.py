@@ -37,7 +37,10 @@ class Preset:
     densify_every: int = 100
     densify_grad: float = 1e-3
     prune_opacity: float = 0.005
-    prune_big_after: int = 3000  # world-size pruning (> 0.1 x extent) only after this iteration (3DGS)
+    prune_big_after: int = 3000  # world-size (> 0.1 x extent) and screen-size pruning only after this iteration
+    max_screen_radius: float = 20.0  # pixels (3DGS's max_screen_size)
+    grid_resolution: int = 256  # lookup grid for children's and moved Gaussians' LBS weights and d (0: no grid,
+    # children copy their parent's)
     # Bookkeeping.
     checkpoint_every: int = 1000
     log_every: int = 10
