@@ -58,125 +58,105 @@ void joint_transforms(const AvatarView& av, const float* rot, float* A) {
 }
 
 // fb.order = indices of the visible splats sorted by depth, ties in index order: a stable LSD radix sort
-// (3 passes of 11 bits over the bits of the positive float depths), each pass split across the threads.
-void sort_visible_by_depth(const Splat* s, int n, FrameBins& fb, int threads) {
+// (3 passes of 11 bits over the bits of the positive float depths).
+void sort_visible_by_depth(const Splat* s, int n, FrameBins& fb) {
     constexpr int kBuckets = 2048;
     fb.order.resize(n), fb.keys.resize(n), fb.tmp.resize(n), fb.tmp_keys.resize(n);
-    fb.hist.assign(size_t(threads) * kBuckets + threads + 1, 0);
-    uint32_t* visible = fb.hist.data() + size_t(threads) * kBuckets;  // [threads + 1] counts, then offsets
     int m = 0;
-#pragma omp parallel num_threads(threads)
-    {
-        const int t = omp_get_thread_num(), nt = omp_get_num_threads();
-        const int i0 = int(int64_t(n) * t / nt), i1 = int(int64_t(n) * (t + 1) / nt);
-        uint32_t c = 0;
-        for (int i = i0; i < i1; ++i) c += s[i].x0 < s[i].x1;
-        visible[t + 1] = c;
-#pragma omp barrier
-#pragma omp single
-        {
-            for (int u = 0; u < nt; ++u) visible[u + 1] += visible[u];
-            m = int(visible[nt]);
+    for (int i = 0; i < n; ++i) {
+        if (!(s[i].x0 < s[i].x1)) continue;
+        fb.order[m] = uint32_t(i);
+        std::memcpy(&fb.keys[m], &s[i].t.depth, 4);
+        ++m;
+    }
+    fb.hist.resize(kBuckets);
+    uint32_t* h = fb.hist.data();
+    for (int sh = 0; sh < 32; sh += 11) {
+        std::fill(h, h + kBuckets, 0u);
+        const uint32_t* idx = fb.order.data();
+        const uint32_t* key = fb.keys.data();
+        for (int j = 0; j < m; ++j) ++h[(key[j] >> sh) & (kBuckets - 1)];
+        uint32_t run = 0;
+        for (int b = 0; b < kBuckets; ++b) {
+            const uint32_t c = h[b];
+            h[b] = run;
+            run += c;
         }
-        uint32_t pos = visible[t];
-        for (int i = i0; i < i1; ++i) {
-            if (!(s[i].x0 < s[i].x1)) continue;
-            fb.order[pos] = uint32_t(i);
-            std::memcpy(&fb.keys[pos], &s[i].t.depth, 4);
-            ++pos;
+        uint32_t* out_idx = fb.tmp.data();
+        uint32_t* out_key = fb.tmp_keys.data();
+        for (int j = 0; j < m; ++j) {
+            const uint32_t dst = h[(key[j] >> sh) & (kBuckets - 1)]++;
+            out_idx[dst] = idx[j], out_key[dst] = key[j];
         }
-        const int j0 = int(int64_t(m) * t / nt), j1 = int(int64_t(m) * (t + 1) / nt);
-        uint32_t* h = fb.hist.data() + size_t(t) * kBuckets;
-        for (int sh = 0; sh < 32; sh += 11) {
-#pragma omp barrier
-            const uint32_t* idx = fb.order.data();
-            const uint32_t* key = fb.keys.data();
-            std::fill(h, h + kBuckets, 0u);
-            for (int j = j0; j < j1; ++j) ++h[(key[j] >> sh) & (kBuckets - 1)];
-#pragma omp barrier
-#pragma omp single
-            {
-                uint32_t run = 0;  // bucket-major, then thread: stable
-                for (int b = 0; b < kBuckets; ++b)
-                    for (int u = 0; u < nt; ++u) {
-                        uint32_t& v = fb.hist[size_t(u) * kBuckets + b];
-                        const uint32_t c2 = v;
-                        v = run;
-                        run += c2;
-                    }
-            }
-            uint32_t* out_idx = fb.tmp.data();
-            uint32_t* out_key = fb.tmp_keys.data();
-            for (int j = j0; j < j1; ++j) {
-                const uint32_t dst = h[(key[j] >> sh) & (kBuckets - 1)]++;
-                out_idx[dst] = idx[j], out_key[dst] = key[j];
-            }
-#pragma omp barrier
-#pragma omp single
-            {
-                fb.order.swap(fb.tmp);
-                fb.keys.swap(fb.tmp_keys);
-            }
-        }
+        fb.order.swap(fb.tmp);
+        fb.keys.swap(fb.tmp_keys);
     }
     fb.order.resize(m);
 }
 
 }  // namespace
 
-// Visible splats of one frame, depth-sorted (ties by index), copied tile by tile into fb.binned (each tile's
-// records contiguous and in depth order) so that compositing streams through memory.
+// Visible splats of one frame in depth order (ties by index) in fb.sorted, and per tile the positions in it of
+// the splats that reach the tile (fb.binned, ascending: depth order). Tile lists hold 4-byte positions, not the
+// 48-byte records: scattered over a thousand tiles, record copies cost more than gathering them back per tile.
+// The sort runs on the calling thread: a parallel one needs about ten barriers, and a barrier stalls for as long
+// as any other process holds one of the cores.
 void bin_frame(const Splat* s, int n, int tiles_x, int tiles, FrameBins& fb, int threads) {
-    sort_visible_by_depth(s, n, fb, threads);
+    sort_visible_by_depth(s, n, fb);
     const int m = int(fb.order.size());
+    fb.sorted.resize(m);
+    fb.rects.resize(m);
     fb.counts.assign(size_t(threads) * tiles, 0);
     fb.tile_offsets.assign(tiles + 1, 0);
-    const uint32_t* order = fb.order.data();
-    uint32_t* counts = fb.counts.data();
-    constexpr int kAhead = 16;  // depth order visits the splats at random: prefetch
-    auto tiles_of = [&](int i, int& tx0, int& tx1, int& ty0, int& ty1) -> const Splat& {
-        const Splat& g = s[order[i]];
-        tx0 = int(g.x0) / kTile, tx1 = (int(g.x1) - 1) / kTile;
-        ty0 = int(g.y0) / kTile, ty1 = (int(g.y1) - 1) / kTile;
-        return g;
-    };
 #pragma omp parallel num_threads(threads)
     {
         const int t = omp_get_thread_num(), nt = omp_get_num_threads();
         const int i0 = int(int64_t(m) * t / nt), i1 = int(int64_t(m) * (t + 1) / nt);
-        uint32_t* cnt = counts + size_t(t) * tiles;
+        uint32_t* cnt = fb.counts.data() + size_t(t) * tiles;
+        const uint32_t* order = fb.order.data();
+        constexpr int kAhead = 16;  // depth order visits the splats at random: prefetch
         for (int i = i0; i < i1; ++i) {
             if (i + kAhead < i1) __builtin_prefetch(&s[order[i + kAhead]]);
-            int tx0, tx1, ty0, ty1;
-            tiles_of(i, tx0, tx1, ty0, ty1);
-            for (int ty = ty0; ty <= ty1; ++ty)
-                for (int tx = tx0; tx <= tx1; ++tx) ++cnt[ty * tiles_x + tx];
+            const Splat& g = s[order[i]];
+            fb.sorted[i] = g.t;
+            TileRect& r = fb.rects[i];
+            r.x0 = uint16_t(int(g.x0) / kTile), r.x1 = uint16_t((int(g.x1) - 1) / kTile);
+            r.y0 = uint16_t(int(g.y0) / kTile), r.y1 = uint16_t((int(g.y1) - 1) / kTile);
+            for (int ty = r.y0; ty <= r.y1; ++ty)
+                for (int tx = r.x0; tx <= r.x1; ++tx) ++cnt[ty * tiles_x + tx];
         }
 #pragma omp barrier
 #pragma omp single
         {
-            // Per tile, thread t's records follow thread t-1's: depth order is kept.
+            // Per tile, thread t's entries follow thread t-1's: depth order is kept.
             uint32_t run = 0;
             for (int tile = 0; tile < tiles; ++tile) {
                 fb.tile_offsets[tile] = run;
                 for (int u = 0; u < nt; ++u) {
-                    const uint32_t c = counts[size_t(u) * tiles + tile];
-                    counts[size_t(u) * tiles + tile] = run;
-                    run += c;
+                    uint32_t& c = fb.counts[size_t(u) * tiles + tile];
+                    const uint32_t c0 = c;
+                    c = run;
+                    run += c0;
                 }
             }
             fb.tile_offsets[tiles] = run;
             fb.binned.resize(run);
         }
-        TileSplat* binned = fb.binned.data();
+        uint32_t* binned = fb.binned.data();
         for (int i = i0; i < i1; ++i) {
-            if (i + kAhead < i1) __builtin_prefetch(&s[order[i + kAhead]]);
-            int tx0, tx1, ty0, ty1;
-            const TileSplat& g = tiles_of(i, tx0, tx1, ty0, ty1).t;
-            for (int ty = ty0; ty <= ty1; ++ty)
-                for (int tx = tx0; tx <= tx1; ++tx) binned[cnt[ty * tiles_x + tx]++] = g;
+            const TileRect r = fb.rects[i];
+            for (int ty = r.y0; ty <= r.y1; ++ty)
+                for (int tx = r.x0; tx <= r.x1; ++tx) binned[cnt[ty * tiles_x + tx]++] = uint32_t(i);
         }
     }
+}
+
+const TileSplat* gather_tile(const FrameBins& fb, int tile, std::vector<TileSplat>& local) {
+    const uint32_t o0 = fb.tile_offsets[tile], o1 = fb.tile_offsets[tile + 1];
+    if (local.size() < o1 - o0) local.resize(o1 - o0);
+    const uint32_t* pos = fb.binned.data() + o0;
+    for (uint32_t j = 0; j < o1 - o0; ++j) local[j] = fb.sorted[pos[j]];
+    return local.data();
 }
 
 namespace {
@@ -190,7 +170,12 @@ double rasterize_splats(const Splat* splats, int n, int B, const Cam* cams, cons
     if (int(bins.size()) < B) bins.resize(B);
     const int W = cams[0].width, H = cams[0].height;
     const int tiles_x = (W + kTile - 1) / kTile, tiles_y = (H + kTile - 1) / kTile, tiles = tiles_x * tiles_y;
-    for (int b = 0; b < B; ++b) bin_frame(splats + size_t(b) * n, n, tiles_x, tiles, bins[b], threads);
+    if (B >= 2 && threads >= 2) {  // a frame per thread: no barriers inside a frame's sort and binning
+#pragma omp parallel for num_threads(threads) schedule(dynamic, 1)
+        for (int b = 0; b < B; ++b) bin_frame(splats + size_t(b) * n, n, tiles_x, tiles, bins[b], 1);
+    } else {
+        for (int b = 0; b < B; ++b) bin_frame(splats + size_t(b) * n, n, tiles_x, tiles, bins[b], threads);
+    }
     const double bin_ms = ms_since(t0);
     const int jobs = B * tiles;
 #pragma omp parallel for num_threads(threads) schedule(dynamic, 4)
@@ -198,8 +183,9 @@ double rasterize_splats(const Splat* splats, int n, int B, const Cam* cams, cons
         const int b = job / tiles, t = job % tiles;
         const FrameBins& fb = bins[b];
         const size_t pix = size_t(b) * W * H;
-        k.raster_tile(fb.binned.data() + fb.tile_offsets[t], int(fb.tile_offsets[t + 1] - fb.tile_offsets[t]),
-                      t % tiles_x, t / tiles_x, cams[b], bg + 3 * b, rgb + pix * 3, alpha + pix, depth + pix);
+        static thread_local std::vector<TileSplat> local;
+        k.raster_tile(gather_tile(fb, t, local), int(fb.tile_offsets[t + 1] - fb.tile_offsets[t]), t % tiles_x,
+                      t / tiles_x, cams[b], bg + 3 * b, rgb + pix * 3, alpha + pix, depth + pix);
     }
     return bin_ms;
 }

@@ -14,17 +14,27 @@ struct Timings {
     double bin_ms = 0.0;  // part of raster_ms: depth sort and tile binning
 };
 
+// Tile rectangle of a visible splat (inclusive).
+struct TileRect {
+    uint16_t x0, x1, y0, y1;
+};
+
 // One frame's depth order and tile bins (bin_frame); the vectors are reused from call to call.
 struct FrameBins {
     std::vector<uint32_t> order, tmp, keys, tmp_keys, tile_offsets;
     std::vector<uint32_t> counts;  // [threads, tiles]
-    std::vector<uint32_t> hist;    // [threads, 2048]
-    std::vector<TileSplat> binned;
+    std::vector<uint32_t> hist;    // [2048]
+    std::vector<TileSplat> sorted;  // the visible splats in depth order
+    std::vector<TileRect> rects;    // their tile rectangles
+    std::vector<uint32_t> binned;   // per tile, positions in sorted
 };
 
-// Visible splats (x0 < x1) of one frame [n], depth-sorted (ties by index), copied tile by tile into fb.binned:
-// tile t's records are binned[tile_offsets[t], tile_offsets[t + 1]), in depth order.
+// Visible splats (x0 < x1) of one frame [n], depth-sorted (ties by index) into fb.sorted; tile t's splats are
+// fb.sorted[fb.binned[j]] for j in [tile_offsets[t], tile_offsets[t + 1]), in depth order.
 void bin_frame(const Splat* s, int n, int tiles_x, int tiles, FrameBins& fb, int threads);
+
+// Tile t's splats, in depth order, copied into local (resized as needed); returns local.data().
+const TileSplat* gather_tile(const FrameBins& fb, int tile, std::vector<TileSplat>& local);
 
 // SIMD paths this build can run on this CPU, slowest first ("scalar", then "avx2", "avx512").
 std::vector<std::string> available_isas();

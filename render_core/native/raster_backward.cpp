@@ -102,21 +102,23 @@ Timings rasterize_train(const PosedView& pv, const Cam* cams, int B, const float
         const FrameBins& fb = bins[b];
         TrainFrame& f = ctx.frames[b];
         const size_t pix = size_t(b) * W * H;
-        kb.raster_tile_train(fb.binned.data() + fb.tile_offsets[t], int(fb.tile_offsets[t + 1] - fb.tile_offsets[t]),
+        static thread_local std::vector<TileSplat> local;
+        kb.raster_tile_train(gather_tile(fb, t, local), int(fb.tile_offsets[t + 1] - fb.tile_offsets[t]),
                              t % tiles_x, t / tiles_x, cams[b], bg + 3 * b, rgb + pix * 3, alpha + pix, depth + pix,
                              f.T.data(), f.last.data());
     }
-    // Keep only the Gaussian index of each tile-list entry (4 bytes instead of the 48-byte record).
+    // The Gaussian index of each tile-list entry.
     for (int b = 0; b < B; ++b) {
         const FrameBins& fb = bins[b];
         TrainFrame& f = ctx.frames[b];
         f.tile_offsets = fb.tile_offsets;
         f.ids.resize(fb.binned.size());
         const int64_t m = int64_t(fb.binned.size());
-        const TileSplat* src = fb.binned.data();
+        const uint32_t* pos = fb.binned.data();
+        const TileSplat* sorted = fb.sorted.data();
         uint32_t* dst = f.ids.data();
 #pragma omp parallel for num_threads(threads) schedule(static)
-        for (int64_t i = 0; i < m; ++i) dst[i] = src[i].id;
+        for (int64_t i = 0; i < m; ++i) dst[i] = sorted[pos[i]].id;
     }
     tm.raster_ms = ms_since(t0);
     return tm;
