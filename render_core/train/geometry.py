@@ -2,11 +2,10 @@
 
 ``d_{i,k}`` is the displacement magnitude, from M0 to M_k, of the neutral-mesh point closest to Gaussian i: the
 barycentric interpolation, at that point, of the vertices' ``|expression_basis[k]|``; the LBS weights of a point
-are the same interpolation of the vertices' weights. :func:`surface_values` computes both per point directly: the
-closest point is searched among the triangles incident to the point's few nearest vertices, which finds the true
-closest triangle for points on or near the surface (every Gaussian at initialisation). Densified and moved
-Gaussians get them from the 256^3 lookup grid of :mod:`.grids`, whose nodes use the same triangle test
-(:class:`Triangles`, :func:`closest_among`) with an exact per-brick candidate set.
+are the same interpolation of the vertices' weights. :func:`surface_values` computes both per point directly (every
+Gaussian at initialisation) with an exact closest-point search (:func:`closest_points`). Densified and moved
+Gaussians get them from the 256^3 lookup grid of :mod:`.grids`, whose nodes use the same search
+(:class:`Triangles`, :func:`closest_among`) with candidates shared by a brick of nodes.
 """
 
 from __future__ import annotations
@@ -15,6 +14,22 @@ import torch
 from torch import Tensor
 
 from ..facemodel import FaceModel
+
+SLACK = 1e-7  # metres added to the candidate bounds (covers the rounding of matrix-product distances)
+
+
+def compact(keep: Tensor) -> tuple[Tensor, Tensor]:
+    """The column indices of the True entries of each row of ``keep`` [R, C], moved to the front (in order) and
+    padded with 0 to the longest row: (indices [R, m], valid [R, m]), m >= 1."""
+    rows, cols = keep.nonzero(as_tuple=True)
+    count = torch.bincount(rows, minlength=keep.shape[0])
+    width = max(int(count.max()) if len(count) else 0, 1)
+    slot = torch.arange(len(rows)) - (torch.cumsum(count, 0) - count)[rows]
+    idx = torch.zeros(keep.shape[0], width, dtype=torch.long)
+    valid = torch.zeros(keep.shape[0], width, dtype=torch.bool)
+    idx[rows, slot] = cols
+    valid[rows, slot] = True
+    return idx, valid
 
 
 class Triangles:
@@ -37,6 +52,9 @@ class Triangles:
         self.d00 = (e0 * e0).sum(1)
         self.d01 = (e0 * e1).sum(1)
         self.d11 = (e1 * e1).sum(1)
+        centroid = (a + b + c) / 3
+        self.centroid = centroid
+        self.radius = torch.stack([a, b, c]).sub(centroid).norm(dim=-1).amax(0)  # bounding sphere per triangle
 
     def __len__(self) -> int:
         return int(self.faces.shape[0])
@@ -70,6 +88,30 @@ class Triangles:
         t_bc = (dot / e2.clamp_min(1e-30)).clamp(0, 1)
         bc = qb - 2 * t_bc * dot + t_bc * t_bc * e2
         return inside, foot, (bv, bw), (ab, t_ab), (bc, t_bc), (ac, t_ac)
+
+    def near(self, centres: Tensor, half: Tensor | float = 0.0) -> tuple[Tensor, Tensor]:
+        """The triangles that can hold the closest surface point of a point within ``half`` of each centre [U, 3]
+        (``half`` [U] or a number; 0: the centre itself): (candidates [U, m], valid [U, m]).
+
+        Exact: the closest triangle of such a point lies within D + 2 half of the centre, D being the centre's
+        distance to the surface. A bounding-sphere prefilter against every triangle (the nearest vertex bounds D
+        from above), then :meth:`refine`."""
+        c = centres.double()
+        half = torch.as_tensor(half, dtype=torch.float64).expand(len(c))
+        m = torch.cdist(c, self.vertices).amin(1)  # >= D
+        lower = torch.cdist(c, self.centroid) - self.radius  # <= the distance to each triangle
+        cand, valid = compact(lower <= (m + 2 * half + SLACK)[:, None])
+        return self.refine(c, half, cand, valid)
+
+    def refine(self, centres: Tensor, half: Tensor, cand: Tensor, valid: Tensor) -> tuple[Tensor, Tensor]:
+        """Keep the candidates [U, m] within D + 2 half of each centre, D being the centre's distance to its nearest
+        candidate: exact (see :meth:`near`) when the candidates held every triangle that can be closest to a point
+        within ``half`` of the centre, and the centre's own closest triangle."""
+        dist = torch.where(valid, self.distances(centres, cand), torch.inf).sqrt()
+        bound = dist.amin(1) + 2 * half + SLACK
+        keep = valid & (dist <= bound[:, None])
+        idx, ok = compact(keep)
+        return cand.gather(1, idx), ok
 
     def distances(self, points: Tensor, candidates: Tensor) -> Tensor:
         """Squared distance [P, m] from each point [P, 3] to each of its candidate triangles [P, m]."""
@@ -112,38 +154,20 @@ def closest_among(mesh: Triangles, points: Tensor, candidates: Tensor,
     return tri, bary, d2
 
 
-def closest_points(vertices: Tensor, faces: Tensor, points: Tensor, *, neighbours: int = 16,
-                   chunk: int = 1024) -> tuple[Tensor, Tensor]:
+def closest_points(vertices: Tensor, faces: Tensor, points: Tensor, *, chunk: int = 512) -> tuple[Tensor, Tensor]:
     """For each point, the closest triangle of the mesh and the barycentric coordinates of the closest point on it.
 
-    Candidates: the triangles incident to the ``neighbours`` nearest vertices (exact for points on or near the
-    surface; an approximation far from it). Computed in float64.
+    Exact (:meth:`Triangles.near` picks every triangle that can be the closest, :func:`closest_among` the closest),
+    anywhere in space; ties go to the lower triangle index. Computed in float64.
 
     Returns:
         (triangle index [P] int64, barycentric [P, 3] float64, summing to 1, all >= 0).
     """
     mesh = Triangles(vertices, faces)
-    v, f = mesh.vertices, mesh.faces
-    nv = v.shape[0]
-    # Vertex -> incident triangles, padded with -1.
-    vert_of = f.flatten()
-    tri_of = torch.arange(f.shape[0]).repeat_interleave(3)
-    order = torch.argsort(vert_of, stable=True)
-    vert_sorted, tri_sorted = vert_of[order], tri_of[order]
-    counts = torch.bincount(vert_sorted, minlength=nv)
-    valence = int(counts.max()) if counts.numel() else 0
-    start = torch.cumsum(counts, 0) - counts
-    slot = torch.arange(len(vert_sorted)) - start[vert_sorted]
-    incident = torch.full((nv, max(valence, 1)), -1, dtype=torch.long)
-    incident[vert_sorted, slot] = tri_sorted
-
     tri_out, bary_out = [], []
-    for p in points.double().split(chunk):
-        if not len(p):
-            continue
-        near = torch.cdist(p, v).topk(min(neighbours, nv), largest=False).indices  # [c, n]
-        cand = incident[near].reshape(len(p), -1)  # [c, n * valence]
-        tri, bary, _ = closest_among(mesh, p, cand, cand >= 0)
+    for p in points.detach().double().cpu().split(chunk):
+        cand, valid = mesh.near(p)
+        tri, bary, _ = closest_among(mesh, p, cand, valid)
         tri_out.append(tri)
         bary_out.append(bary)
     tri_idx = torch.cat(tri_out) if tri_out else torch.zeros(0, dtype=torch.long)
