@@ -9,8 +9,8 @@ with the frame's tracking and camera and compared with the ground truth whose ba
   window positions;
 - ``psnr_head``: the MSE over the pixels inside the ground-truth head mask only (mask > 0.5), in dB; frames whose
   mask is empty have none;
-- ``lpips``: only when the ``lpips`` package and its AlexNet weights are already on this machine (nothing is ever
-  downloaded); otherwise null, with the reason in ``notes``.
+- ``lpips``: LPIPS (AlexNet v0.1, :mod:`render_core.lpips`) only when its weights are in the local file named by
+  ``BLENDSPLAT_LPIPS_WEIGHTS`` (nothing is ever downloaded); otherwise null, with the reason in ``notes``.
 
 Identical images have an infinite PSNR; every PSNR here is capped at :data:`PSNR_CAP` (100 dB, an MSE of 1e-10)
 so that reports stay finite, standard JSON. Averages are means of the per-frame values (the usual convention).
@@ -117,29 +117,21 @@ def ssim(pred, target, data_range: float = 1.0) -> float:
     return float(ssim_batch(a[None], b[None], data_range)[0])
 
 
-def _lpips_metric():
-    """(callable(pred [B,H,W,3], gt) -> [B] or None, note). Never downloads: LPIPS needs the ``lpips`` package
-    and torchvision's AlexNet weights already in torch's hub cache."""
-    try:
-        import lpips  # noqa: F401
-    except ImportError:
-        return None, ("lpips is null: the 'lpips' package is not installed here, and LPIPS weights are never "
-                      "downloaded by evaluation (install lpips and put AlexNet's weights in torch's hub cache)")
-    ckpt = Path(torch.hub.get_dir()) / "checkpoints"
-    if not any(ckpt.glob("alexnet-owt-*.pth")):
-        return None, f"lpips is null: AlexNet weights are not in {ckpt}, and evaluation never downloads them"
-    try:
-        model = lpips.LPIPS(net="alex", verbose=False).eval()
-    except Exception as e:  # a broken local install must not sink the other metrics
-        return None, f"lpips is null: loading the LPIPS model failed ({type(e).__name__}: {e})"
+def _lpips_metric(width: int, height: int):
+    """(callable(pred [B,H,W,3], gt) -> [B] or None, note). Never downloads: LPIPS (:mod:`render_core.lpips`)
+    needs its AlexNet weights in the local file named by ``BLENDSPLAT_LPIPS_WEIGHTS``."""
+    from . import lpips
+
+    if min(width, height) < lpips.MIN_SIZE:
+        return None, f"lpips is null: the frames ({width} x {height}) are smaller than LPIPS's {lpips.MIN_SIZE} px"
+    model, note = lpips.from_environment()
+    if model is None:
+        return None, note
 
     def fn(pred: Tensor, gt: Tensor) -> Tensor:
-        with torch.no_grad():
-            p = pred.permute(0, 3, 1, 2).float() * 2 - 1
-            g = gt.permute(0, 3, 1, 2).float() * 2 - 1
-            return model(p, g).reshape(-1).double()
+        return model(pred, gt).double()
 
-    return fn, "lpips: AlexNet (the lpips package), inputs scaled to [-1, 1]"
+    return fn, note
 
 
 # ------------------------------------------------------------------------------------------------- evaluation
@@ -194,7 +186,7 @@ def evaluate(bundle_or_avatar, data_dir, split: str = "test", batch: int = 4, co
 
     renderer = AvatarRenderer(avatar, backend)
     background = torch.zeros(3)
-    lpips_fn, lpips_note = _lpips_metric()
+    lpips_fn, lpips_note = _lpips_metric(int(ds.tracking.width), int(ds.tracking.height))
     notes = [lpips_note, f"psnr values are capped at {PSNR_CAP:g} dB (identical images)",
              "psnr_head: MSE over the pixels where the ground-truth mask > 0.5"]
     want = set()

@@ -1,4 +1,4 @@
-"""Held-out evaluation (PSNR, SSIM, psnr_head; LPIPS null without local weights) and the loss-curve plot."""
+"""Held-out evaluation (PSNR, SSIM, psnr_head; LPIPS only with local weights) and the loss-curve plot."""
 
 from __future__ import annotations
 
@@ -103,7 +103,8 @@ def scene(head, tmp_path_factory):
     return root, summary, avatar
 
 
-def test_evaluate_reports_every_held_out_frame(scene):
+def test_evaluate_reports_every_held_out_frame(scene, monkeypatch):
+    monkeypatch.delenv("BLENDSPLAT_LPIPS_WEIGHTS", raising=False)
     root, summary, avatar = scene
     result = evaluate(avatar, root / "ds", batch=4, contact_sheet=root / "sheet.png", report=root / "report.json")
     for key in ("psnr", "ssim", "psnr_head", "lpips", "frames", "split", "per_frame", "bundle", "data", "notes"):
@@ -123,9 +124,10 @@ def test_evaluate_reports_every_held_out_frame(scene):
     assert px.max() > 100  # not blank
 
 
-def test_evaluate_all_frames_in_batches_and_from_a_bundle(scene, capsys):
+def test_evaluate_all_frames_in_batches_and_from_a_bundle(scene, capsys, monkeypatch):
     from render_core.bundle import write_bundle
 
+    monkeypatch.delenv("BLENDSPLAT_LPIPS_WEIGHTS", raising=False)
     root, summary, avatar = scene
     write_bundle(avatar, root / "avatar.bsplat")
     one = evaluate(avatar, root / "ds", split="all", batch=4)
@@ -138,6 +140,28 @@ def test_evaluate_all_frames_in_batches_and_from_a_bundle(scene, capsys):
     assert run_eval(root / "avatar.bsplat", root / "ds", as_json=True) == 0
     printed = json.loads(capsys.readouterr().out)
     assert {"psnr", "ssim", "psnr_head", "frames"} <= set(printed) and printed["lpips"] is None
+
+
+def test_evaluate_reports_lpips_when_its_weights_are_local(scene, monkeypatch, tmp_path, capsys):
+    from safetensors.torch import save_file
+
+    from tests.test_lpips import random_weights
+
+    root, summary, avatar = scene
+    save_file(random_weights(), str(tmp_path / "alex.safetensors"))
+    monkeypatch.setenv("BLENDSPLAT_LPIPS_WEIGHTS", str(tmp_path / "alex.safetensors"))
+    result = evaluate(avatar, root / "ds")
+    assert result["lpips"] is not None and result["lpips"] > 0
+    assert all(r["lpips"] is not None and r["lpips"] > 0 for r in result["per_frame"])
+    assert result["lpips"] == pytest.approx(np.mean([r["lpips"] for r in result["per_frame"]]))
+    assert any("alex.safetensors" in n for n in result["notes"])
+    assert run_eval(avatar, root / "ds", as_json=False) == 0
+    out = capsys.readouterr().out
+    assert "LPIPS " in out and "LPIPS n/a" not in out
+    # An unusable file: lpips is null and the note says why; the other metrics are unaffected.
+    monkeypatch.setenv("BLENDSPLAT_LPIPS_WEIGHTS", str(tmp_path / "nothing.safetensors"))
+    result = evaluate(avatar, root / "ds")
+    assert result["lpips"] is None and any("nothing.safetensors" in n for n in result["notes"])
 
 
 def test_evaluate_rejects_a_mismatched_avatar_and_bad_arguments(scene):
