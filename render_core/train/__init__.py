@@ -2,6 +2,8 @@
 
 - :mod:`.model`: the trainable avatar with the blendshape-consistency parametrisation (Eq. 2) and its ablations;
 - :mod:`.geometry`: closest surface points and per-blendshape displacement magnitudes d_{i,k};
+- :mod:`.grids`: the lazily built 256^3 lookup grid of LBS weights and d_{i,k} (densified and moved Gaussians);
+- :mod:`.densify`: densification and pruning (gradient, opacity, world and screen size);
 - :mod:`.losses`: L1, D-SSIM, alpha MSE, mouth-cylinder regulariser;
 - :mod:`.loop`: :func:`train` (presets in :mod:`.presets`), checkpoints and exact resume.
 """
