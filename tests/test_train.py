@@ -257,7 +257,7 @@ def test_resume_equals_an_uninterrupted_run(toy, head, tmp_path):
     assert resumed["resumed_from"] == 3 and resumed["iterations"] == 6
     assert straight["gaussians"] > TOY.gaussians and straight["gaussians"] == resumed["gaussians"]
     assert sum(d["pruned_screen"] for d in straight["densified"]) > 0
-    assert sum(d["looked_up"] for d in straight["densified"]) > 0
+    assert sum(d["looked_up"] for d in straight["densified"]) > 0 and straight["grid"]["bricks_built"] > 0
     a = load_checkpoint(tmp_path / "a" / "checkpoints" / "ckpt_0000006.pt")
     b = load_checkpoint(tmp_path / "b" / "checkpoints" / "ckpt_0000006.pt")
     ta, tb = a["model"]["tensors"], b["model"]["tensors"]

@@ -344,6 +344,7 @@ def train(
         _truncate_log(workdir / "log.jsonl", start)
     opt = make_optimizer(model, cfg)
     grid = lookup_grid(fm, cfg.grid_resolution) if cfg.densify and cfg.grid_resolution else None
+    grid_start = (grid.built, grid.build_seconds) if grid is not None else (0, 0.0)  # the grid may be shared
     if state is not None:
         opt.load_state_dict(state["optimizer"])
         del state
@@ -446,6 +447,8 @@ def train(
         "stage_ms": {s: round(1e3 * times[s] / done, 2) for s in STAGES} if done else {},
         "first": history[0] if history else None, "last": history[-1] if history else None,
         "densified": densified,
+        "grid": None if grid is None else {"resolution": grid.resolution, "bricks_built": grid.built - grid_start[0],
+                                           "build_seconds": round(grid.build_seconds - grid_start[1], 3)},
     }
     if end < total:  # interrupted on purpose: no bundle
         summary["bundle"] = None
