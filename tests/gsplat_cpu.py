@@ -2,9 +2,9 @@
 
 ``gsplat.rasterization`` (gsplat/rendering.py) is plain torch around four CUDA entry points. Here they are replaced:
 projection and tile binning by gsplat's own pure-torch twins (``gsplat.cuda._torch_impl``), and the per-tile
-compositing by :func:`rasterize_to_pixels` below, a direct transcription of gsplat 1.5.3's forward kernel
-(RasterizeToPixels3DGSFwd.cu: per tile, the Gaussians in bin order; sigma, alpha = min(0.999, o exp(-sigma)),
-skip sigma < 0 or alpha < 1/255, stop before next_T <= 1e-4; out = sum + T background). Everything else -
+compositing by :func:`rasterize_to_pixels` below, our own vectorised statement of what gsplat 1.5.3's forward
+kernel computes (per tile, the Gaussians in bin order; sigma, alpha = min(0.999, o exp(-sigma)), skip sigma < 0
+or alpha < 1/255, stop before the transmittance would fall to 1e-4; out = sum + T background). Everything else -
 argument checks, the batch and camera dimensions, opacity compensation, the "RGB+D" depth channel and its zero
 background, the output layout - is gsplat's own code, fed by our conversion (render_core.raster.gsplat_backend).
 
