@@ -47,6 +47,10 @@ static inline void blend_slice(const AvatarView& av, const float* psi, const T* 
 template <class T, int DP, int GB>
 static inline void blend_group(const AvatarView& av, const float* psi, const T* vals, int j0, int j1, float* acc) {
     static_assert(DP % W == 0, "rows are whole vectors");
+    if constexpr (W >= 16 && DP / W <= 4) {  // 32 registers: the whole row's accumulators of GB frames fit
+        blend_slice<T, DP, GB, DP / W>(av, psi, vals, j0, j1, acc, 0);
+        return;
+    }
     int d = 0;
     for (; d + 2 * W <= DP; d += 2 * W) blend_slice<T, DP, GB, 2>(av, psi, vals, j0, j1, acc, d);
     if constexpr (DP % (2 * W) != 0) blend_slice<T, DP, GB, 1>(av, psi, vals, j0, j1, acc, d);
