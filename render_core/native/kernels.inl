@@ -436,16 +436,21 @@ static void tile_row_spans(const TileSplat* splats, int count, int cpad, int yb,
     }
 }
 
-// One 16x16 tile. Each row is cut into segments of W pixels (one vector). First, for every row and every Gaussian
-// of the tile, the exact pixel span of its eligibility ellipse on the row's centre line (tile_row_spans). Then each
-// segment scans the spans W at a time and composites only the Gaussians that reach it, in depth order,
-// branch-free, with its transmittance, colour and depth in registers, until all its pixels have stopped.
+// One 16x16 tile, in blocks of BR rows x BW columns, one vector each: 8 x 2 pixels with 16 lanes, 8 x 1 with 8
+// (a splat reaches a few pixels of a row, so a squarer block wastes fewer lanes than a 16-pixel row). First, for
+// every row and every Gaussian of the tile, the exact pixel span of its eligibility ellipse on the row's centre
+// line (tile_row_spans). Then each block scans the spans of its rows W at a time and composites only the Gaussians
+// that reach it, in depth order, branch-free, with its transmittance, colour and depth in registers, until all its
+// pixels have stopped. Every pixel's arithmetic is the same whatever the block shape: the backward (splat_alpha)
+// recomputes it row by row.
 // Train: also write each pixel's final transmittance and last contributor (1-based; 0: none) for the backward.
 template <bool Train>
 static void raster_tile_impl(const TileSplat* splats, int count, int tx, int ty, const Cam& cam,
                              const float* background, float* rgb, float* alpha, float* depth, float* Tout,
                              uint32_t* last_out) {
-    constexpr int NS = kTile / W;  // segments per row
+    constexpr int BW = W < 8 ? W : 8;  // block columns
+    constexpr int BR = W / BW;         // block rows (1 or 2)
+    static_assert(BR == 1 || BR == 2, "blocks of one or two rows");
     const int xb = tx * kTile, yb = ty * kTile;
     const int xe = std::min(xb + kTile, cam.width), ye = std::min(yb + kTile, cam.height);
     const int rows = ye - yb;
@@ -456,54 +461,73 @@ static void raster_tile_impl(const TileSplat* splats, int count, int tx, int ty,
     float* lo = scratch.data() + size_t(6) * cpad;
     float* hi = lo + size_t(kTile) * cpad;
     tile_row_spans(splats, count, cpad, yb, rows, scratch.data(), lo, hi);
-    const F iota = V::iota(), one = V::set1(1.0f), zero = V::set1(0.0f);
+    alignas(64) float lane_col[kMaxLanes], lane_row[kMaxLanes];
+    for (int l = 0; l < W; ++l) lane_col[l] = float(l % BW), lane_row[l] = float(l / BW);
+    const F col = V::load(lane_col), row = V::load(lane_row);
+    const M second_row = V::gt(row, V::set1(0.0f));  // lanes of the block's second row (BR == 2)
+    const F one = V::set1(1.0f), zero = V::set1(0.0f);
     const F amax = V::set1(kAlphaMax), amin = V::set1(kAlphaMin), tstop = V::set1(kTStop);
-    for (int seg = 0; seg < rows * NS; ++seg) {
-        const int r = seg / NS, x0 = xb + (seg % NS) * W, y = yb + r;
-        const float yc = float(y) + 0.5f;
-        const F px = V::set1(float(x0) + 0.5f) + iota;
-        const F seg_lo = V::set1(float(x0)), seg_hi = V::set1(float(x0 + W - 1));
-        F T = one, Cr = zero, Cg = zero, Cb = zero, D = zero, L = zero;
-        M live = V::lt(px, V::set1(float(xe)));
-        const float* row_lo = lo + size_t(r) * cpad;
-        const float* row_hi = hi + size_t(r) * cpad;
-        for (int c = 0; c < cpad && V::any(live); c += W) {
-            unsigned reach = V::bits(V::mand(V::le(V::load(row_lo + c), seg_hi), V::ge(V::load(row_hi + c), seg_lo)));
-            while (reach) {
-                const int i = c + __builtin_ctz(reach);
-                const TileSplat& s = splats[i];
-                reach &= reach - 1;
-                const float dy = s.my - yc;
-                const F dx = V::set1(s.mx) - px;
-                const F q = V::fma(dx, V::fma(V::set1(s.ha), dx, V::set1(s.cb * dy)), V::set1(s.hc * dy * dy));
-                // Lanes that skip this Gaussian get alpha 0, so that T (1 - a) = T exactly and nothing is added:
-                // only the stop mask is needed to update T and the colour (fewer mask operations per Gaussian).
-                const F a_raw = V::min(amax, vexp2<V>(V::set1(s.log2_opacity) - q));
-                const M ok = V::ge_and(V::ge_and(live, q, zero), a_raw, amin);
-                const F a = V::zero_unless(ok, a_raw);
-                const F nt = T * (one - a);
-                const M stop = V::le_and(ok, nt, tstop);
-                const F w = V::select(stop, zero, a * T);
-                Cr = V::fma(w, V::set1(s.r), Cr);
-                Cg = V::fma(w, V::set1(s.g), Cg);
-                Cb = V::fma(w, V::set1(s.b), Cb);
-                D = V::fma(w, V::set1(s.depth), D);
-                T = V::select(stop, T, nt);
-                if constexpr (Train) L = V::select(V::mandnot(stop, ok), V::set1(float(i + 1)), L);
-                live = V::mandnot(stop, live);
+    for (int r0 = 0; r0 < rows; r0 += BR) {
+        const int nr = std::min(BR, rows - r0);  // rows of this block inside the tile
+        const float yc0 = float(yb + r0) + 0.5f, yc1 = yc0 + 1.0f;
+        for (int x0 = xb; x0 < xe; x0 += BW) {
+            const F px = V::set1(float(x0) + 0.5f) + col;
+            const F seg_lo = V::set1(float(x0)), seg_hi = V::set1(float(x0 + BW - 1));
+            F T = one, Cr = zero, Cg = zero, Cb = zero, D = zero, L = zero;
+            M live = V::mand(V::lt(px, V::set1(float(xe))), V::lt(row, V::set1(float(nr))));
+            const float* lo0 = lo + size_t(r0) * cpad;
+            const float* hi0 = hi + size_t(r0) * cpad;
+            for (int c = 0; c < cpad && V::any(live); c += W) {
+                M reach_m = V::mand(V::le(V::load(lo0 + c), seg_hi), V::ge(V::load(hi0 + c), seg_lo));
+                if (BR == 2 && nr == 2)
+                    reach_m = V::mor(reach_m, V::mand(V::le(V::load(lo0 + cpad + c), seg_hi),
+                                                      V::ge(V::load(hi0 + cpad + c), seg_lo)));
+                unsigned reach = V::bits(reach_m);
+                while (reach) {
+                    const int i = c + __builtin_ctz(reach);
+                    const TileSplat& s = splats[i];
+                    reach &= reach - 1;
+                    const F dx = V::set1(s.mx) - px;
+                    // The row terms of q per lane, as splat_alpha computes them for each row.
+                    const float dy0 = s.my - yc0;
+                    F cbdy = V::set1(s.cb * dy0), hcdy2 = V::set1(s.hc * dy0 * dy0);
+                    if constexpr (BR == 2) {
+                        const float dy1 = s.my - yc1;
+                        cbdy = V::select(second_row, V::set1(s.cb * dy1), cbdy);
+                        hcdy2 = V::select(second_row, V::set1(s.hc * dy1 * dy1), hcdy2);
+                    }
+                    const F q = V::fma(dx, V::fma(V::set1(s.ha), dx, cbdy), hcdy2);
+                    // Lanes that skip this Gaussian get alpha 0, so that T (1 - a) = T exactly and nothing is
+                    // added: only the stop mask is needed to update T and the colour (fewer mask operations).
+                    const F a_raw = V::min(amax, vexp2<V>(V::set1(s.log2_opacity) - q));
+                    const M ok = V::ge_and(V::ge_and(live, q, zero), a_raw, amin);
+                    const F a = V::zero_unless(ok, a_raw);
+                    const F nt = T * (one - a);
+                    const M stop = V::le_and(ok, nt, tstop);
+                    const F w = V::select(stop, zero, a * T);
+                    Cr = V::fma(w, V::set1(s.r), Cr);
+                    Cg = V::fma(w, V::set1(s.g), Cg);
+                    Cb = V::fma(w, V::set1(s.b), Cb);
+                    D = V::fma(w, V::set1(s.depth), D);
+                    T = V::select(stop, T, nt);
+                    if constexpr (Train) L = V::select(V::mandnot(stop, ok), V::set1(float(i + 1)), L);
+                    live = V::mandnot(stop, live);
+                }
             }
-        }
-        alignas(64) float out[6][kMaxLanes];
-        V::store(out[0], T), V::store(out[1], Cr), V::store(out[2], Cg), V::store(out[3], Cb), V::store(out[4], D);
-        if constexpr (Train) V::store(out[5], L);
-        for (int i = 0; i < W && x0 + i < xe; ++i) {
-            const size_t p = size_t(y) * cam.width + x0 + i;
-            rgb[p * 3 + 0] = out[1][i] + out[0][i] * background[0];
-            rgb[p * 3 + 1] = out[2][i] + out[0][i] * background[1];
-            rgb[p * 3 + 2] = out[3][i] + out[0][i] * background[2];
-            alpha[p] = 1.0f - out[0][i];
-            depth[p] = out[4][i];
-            if constexpr (Train) Tout[p] = out[0][i], last_out[p] = uint32_t(out[5][i]);
+            alignas(64) float out[6][kMaxLanes];
+            V::store(out[0], T), V::store(out[1], Cr), V::store(out[2], Cg), V::store(out[3], Cb), V::store(out[4], D);
+            if constexpr (Train) V::store(out[5], L);
+            for (int l = 0; l < W; ++l) {
+                const int x = x0 + l % BW, r = l / BW;
+                if (x >= xe || r >= nr) continue;
+                const size_t p = size_t(yb + r0 + r) * cam.width + x;
+                rgb[p * 3 + 0] = out[1][l] + out[0][l] * background[0];
+                rgb[p * 3 + 1] = out[2][l] + out[0][l] * background[1];
+                rgb[p * 3 + 2] = out[3][l] + out[0][l] * background[2];
+                alpha[p] = 1.0f - out[0][l];
+                depth[p] = out[4][l];
+                if constexpr (Train) Tout[p] = out[0][l], last_out[p] = uint32_t(out[5][l]);
+            }
         }
     }
 }
