@@ -19,6 +19,12 @@ from .errors import ShapeError
 RasterMode = Literal["classic", "antialiased"]
 RASTER_MODES: tuple[str, ...] = ("classic", "antialiased")
 
+
+def check_raster_mode(mode: str) -> None:
+    """ValueError unless ``mode`` is one of :data:`RASTER_MODES` (what every rasterizer backend takes)."""
+    if mode not in RASTER_MODES:
+        raise ValueError(f"raster mode must be one of {RASTER_MODES}, got {mode!r}")
+
 # FLAME's joints (METHOD.md section 11) and the open head's.
 FLAME_JOINTS: tuple[str, ...] = ("root", "neck", "jaw", "eye_l", "eye_r")
 FLAME_PARENTS: tuple[int, ...] = (-1, 0, 1, 1, 1)

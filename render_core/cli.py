@@ -8,6 +8,7 @@ import logging
 import sys
 from pathlib import Path
 
+from .avatar import RASTER_MODES
 from .errors import BlendsplatError
 
 log = logging.getLogger("blendsplat")
@@ -254,7 +255,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--sh-degree", type=int, default=3, choices=range(4))
     s.add_argument("--mouth", type=int, default=None, help="mouth Gaussians (default gaussians // 8)")
     s.add_argument("--precision", choices=("fp32", "fp16"), default="fp32")
-    s.add_argument("--raster-mode", choices=("classic", "antialiased"), default="classic")
+    s.add_argument("--raster-mode", choices=RASTER_MODES, default="classic")
     s.add_argument("--local", action="store_true",
                    help="blendshapes with compact support, as a face model's (zero pairs are not stored); "
                         "default: dense, every pair non-zero")

@@ -8,7 +8,7 @@ import torch
 from render_core.camera import Cameras, orbit
 from render_core.deform import Frame, deform
 from render_core.errors import ShapeError
-from render_core.raster import render
+from render_core.raster import backend_names, render
 from render_core.rotation import axis_angle_to_matrix
 
 
@@ -63,3 +63,10 @@ def test_unknown_backend_and_mismatched_batches_are_errors(avatar):
         render(splats, orbit(0.0, width=8, height=8), backend="nope")
     with pytest.raises(ShapeError, match="cameras"):
         render(splats, orbit([0.0, 1.0, 2.0], width=8, height=8))
+
+
+@pytest.mark.parametrize("backend", backend_names())
+def test_every_backend_refuses_an_unknown_raster_mode_naming_the_modes(avatar, backend):
+    splats = deform(avatar, Frame.neutral(avatar))
+    with pytest.raises(ValueError, match="classic.*antialiased.*'soft'"):
+        render(splats, orbit(0.0, width=8, height=8), backend=backend, mode="soft")

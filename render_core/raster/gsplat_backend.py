@@ -29,6 +29,7 @@ import functools
 import torch
 from torch import Tensor
 
+from ..avatar import check_raster_mode
 from ..camera import Cameras
 from .reference import EPS2D, NEAR, TILE, RasterOutput
 
@@ -127,8 +128,7 @@ def gsplat_arguments(
         colors, alphas, meta = gsplat.rasterization(**gsplat_arguments(m, q, s, o, c, cams, mode="classic"))
         out = from_gsplat(colors, alphas, meta)
     """
-    if mode not in ("classic", "antialiased"):
-        raise ValueError(f"raster mode must be 'classic' or 'antialiased', got {mode!r}")
+    check_raster_mode(mode)
     B, N = means.shape[:2]
     assert means.shape == (B, N, 3), means.shape
     assert quats.shape == (B, N, 4), quats.shape

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..avatar import Avatar, Gaussians, sh_coeff_count
+from ..avatar import Avatar, Gaussians, check_raster_mode, sh_coeff_count
 from ..camera import Cameras
 from ..errors import ShapeError
 
@@ -133,8 +133,7 @@ def _check_posed(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor
                  background: Tensor | None, mode: str) -> None:
     """What both rasterize entry points check before the native code runs (it checks the shapes)."""
     _require()
-    if mode not in ("classic", "antialiased"):
-        raise ValueError(f"raster mode must be 'classic' or 'antialiased', got {mode!r}")
+    check_raster_mode(mode)
     _check_finite(means=means, quats=quats, scales=scales, opacities=opacities, colors=colors, background=background)
     _check_cameras(cameras)
 

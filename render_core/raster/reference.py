@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from ..avatar import check_raster_mode
 from ..camera import Cameras
 from ..rotation import quat_to_matrix
 
@@ -86,11 +87,10 @@ def project(
     det_s = torch.where(ok, det, torch.ones_like(det))
     conics = torch.stack([c11 / det_s, -c01 / det_s, c00 / det_s], dim=-1)
 
+    check_raster_mode(mode)
     opac = opacities
     if mode == "antialiased":
         opac = opac * torch.sqrt(torch.clamp(det_raw / det_s, min=0.0))
-    elif mode != "classic":
-        raise ValueError(f"raster mode must be 'classic' or 'antialiased', got {mode!r}")
     means2d = torch.stack([fx * x / zs + cx, fy * y / zs + cy], dim=-1)
 
     with torch.no_grad():
