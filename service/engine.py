@@ -401,11 +401,14 @@ class Engine:
 
 
 def _rgba(rgb: torch.Tensor, alpha: torch.Tensor) -> np.ndarray:
-    """[B, H, W, 3] and [B, H, W] floats in [0, 1] -> [B, H, W, 4] uint8 (rounded)."""
-    if native.available():
+    """[B, H, W, 3] and [B, H, W] floats in [0, 1] -> [B, H, W, 4] uint8 (rounded), on the host.
+
+    Frames rendered on a GPU (the cuda backend) are converted there, so that a quarter of the bytes cross to the
+    host."""
+    if native.available() and rgb.device.type == "cpu":
         return native.to_rgba8(rgb, alpha)
     rgba = torch.cat([rgb, alpha[..., None]], -1)
-    return rgba.clamp(0, 1).mul(255).add_(0.5).to(torch.uint8).numpy()
+    return rgba.clamp(0, 1).mul(255).add_(0.5).to(torch.uint8).cpu().numpy()
 
 
 def _render(entry: Loaded, jobs: list[Job], encoders: list[Encoder]) -> list[Rendered | BaseException]:
