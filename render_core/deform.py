@@ -177,6 +177,8 @@ class Frame:
 
         batch = 1
         for field, t, rank in items:
+            if not bool(torch.isfinite(t).all()):
+                raise FrameError("values must be finite (no NaN or Infinity)", field=field)
             if t.dim() not in (rank, rank + 1):
                 raise FrameError(f"expected {rank} dims, or {rank + 1} with a leading batch, got shape "
                                  f"{list(t.shape)}", field=field)
@@ -186,6 +188,7 @@ class Frame:
                 batch = int(t.shape[0])
 
         frame = cls.neutral(avatar, batch, dtype)
+        named_joints: dict[tuple[bool, int], list[tuple[int, Tensor]]] = {}  # (matrix, size) -> [(joint, [B, ...])]
         for field, t, rank in items:
             t = (t.unsqueeze(0) if t.dim() == rank else t).expand(batch, *t.shape[t.dim() - rank:])
             if field == "expression":
@@ -197,7 +200,11 @@ class Frame:
             elif field.startswith("expression."):
                 frame.expression[:, names_k.index(field.split(".", 1)[1])] = t
             else:
-                frame.joint_rotations[:, names_j.index(field.split(".", 1)[1])] = _to_matrix(t, rank == 2)
+                key = (rank == 2, t.shape[-1])
+                named_joints.setdefault(key, []).append((names_j.index(field.split(".", 1)[1]), t))
+        for (matrix, _), group in named_joints.items():  # one conversion per kind, not per joint
+            joint_ids = [j for j, _ in group]
+            frame.joint_rotations[:, joint_ids] = _to_matrix(torch.stack([t for _, t in group], 1), matrix)
         frame.check(avatar)
         return frame
 

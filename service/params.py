@@ -16,7 +16,6 @@ from render_core.avatar import Avatar
 from render_core.camera import Cameras
 from render_core.deform import Frame
 from render_core.drive import parse_frame, parse_line
-from render_core.rotation import axis_angle_to_matrix
 
 from .errors import InvalidArgument
 
@@ -116,21 +115,6 @@ def frame(avatar: Avatar, params: pb.FrameParams, order: list[str]) -> Frame:
         line["expression"] = dict(params.named_coefficients)
     if params.eyelids:
         line["eyelids"] = list(params.eyelids)
-    joints = {name: list(rot.values) for name, rot in params.joints.items()}
-    if joints and all(len(v) == 3 for v in joints.values()) and set(joints) <= set(avatar.joint_names):
-        # The common case, all axis-angle: one [J, 3] tensor converts in one call (the loop thread's main cost).
-        frame = parse_frame(avatar, line)
-        aa = torch.zeros(avatar.num_joints, 3)
-        for name, values in joints.items():
-            aa[avatar.joint_names.index(name)] = torch.tensor(values)
-        if not bool(torch.isfinite(aa).all()):
-            bad = next(n for n, v in joints.items() if not all(math.isfinite(x) for x in v))
-            raise InvalidArgument("values must be finite (no NaN or Infinity)", field=f"joints.{bad}")
-        rotations = axis_angle_to_matrix(aa)[None]
-        named = torch.tensor([n in joints for n in avatar.joint_names])
-        frame.joint_rotations = torch.where(named[None, :, None, None], rotations, frame.joint_rotations)
-        frame.check(avatar)
-        return frame
-    if joints:
-        line["joints"] = joints  # 6D rotations or bad names/sizes: the general path, with its errors
+    if params.joints:
+        line["joints"] = {name: list(rot.values) for name, rot in params.joints.items()}
     return parse_frame(avatar, line)

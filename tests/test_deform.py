@@ -283,6 +283,32 @@ def test_frame_from_params_by_name_and_broadcast(avatar):
     assert torch.equal(g.joint_rotations[:, avatar.joint_index("neck")], axis_angle_to_matrix(aa))
 
 
+def test_named_joints_of_mixed_kinds_equal_their_one_by_one_conversions(avatar):
+    g = torch.Generator().manual_seed(3)
+    aa = torch.randn(2, 3, generator=g) * 0.4
+    m6 = axis_angle_to_matrix(torch.randn(2, 3, generator=g) * 0.4)
+    mat = axis_angle_to_matrix(torch.randn(2, 3, generator=g) * 0.4)
+    aa2 = torch.randn(3, generator=g) * 0.4  # batch 1: broadcast
+    names = avatar.joint_names
+    f = Frame.from_params(avatar, joints={names[2]: aa, names[1]: matrix_to_rot6d(m6), names[0]: mat,
+                                          names[-1]: aa2})
+    got = f.joint_rotations
+    assert torch.allclose(got[:, 2], axis_angle_to_matrix(aa), atol=0)
+    assert torch.allclose(got[:, 1], m6, atol=1e-6)
+    assert torch.equal(got[:, 0], mat)
+    assert torch.allclose(got[:, -1], axis_angle_to_matrix(aa2).expand(2, 3, 3), atol=0)
+    for j in range(3, avatar.num_joints - 1):
+        assert torch.equal(got[:, j], torch.eye(3).expand(2, 3, 3))
+
+
+def test_a_non_finite_named_joint_is_refused_by_its_name(avatar):
+    name = avatar.joint_names[-1]
+    with pytest.raises(FrameError, match="finite") as info:
+        Frame.from_params(avatar, joints={avatar.joint_names[0]: torch.zeros(3),
+                                          name: torch.tensor([0.0, float("nan"), 0.0])})
+    assert info.value.field == f"joints.{name}"
+
+
 def test_frame_errors(avatar):
     k = avatar.num_expressions
     with pytest.raises(FrameError, match=rf"expected {k} expression coefficients.*name") as info:
