@@ -267,6 +267,14 @@ def read_bundle(
     return _load(path, verify=verify, device=device)[0]
 
 
+def read_bundle_and_manifest(
+    path: str | os.PathLike, *, verify: bool = True, device: torch.device | str | None = None
+) -> tuple[Avatar, dict]:
+    """:func:`read_bundle` and the (upgraded) manifest of the same file, from one read of its header (a store
+    that replaces bundles atomically cannot pair an avatar with a newer file's manifest)."""
+    return _load(path, verify=verify, device=device)
+
+
 def read_manifest(path: str | os.PathLike) -> dict:
     """The (upgraded) manifest of the bundle at ``path``, reading only the header.
 

@@ -13,7 +13,7 @@ from collections import OrderedDict
 from dataclasses import dataclass, field
 
 from render_core.avatar import Avatar
-from render_core.bundle import read_bundle, read_manifest
+from render_core.bundle import read_bundle_and_manifest
 from render_core.errors import BundleError
 from render_core.renderer import AvatarRenderer
 
@@ -105,13 +105,13 @@ class AvatarCache:
 
     def _read(self, avatar_id: str, path) -> Loaded:
         try:
-            avatar = read_bundle(path)
+            avatar, manifest = read_bundle_and_manifest(path)
         except BundleError as e:
             raise FailedPrecondition(f"avatar {avatar_id!r} has a broken bundle in the store: {e}",
                                      field="avatar_id") from None
         renderer = AvatarRenderer(avatar, self.backend, threads=self.threads)
         file_bytes = path.stat().st_size
-        return Loaded(avatar_id, avatar, renderer, read_manifest(path).get("digest", ""), file_bytes,
+        return Loaded(avatar_id, avatar, renderer, manifest.get("digest", ""), file_bytes,
                       _memory_bytes(renderer, file_bytes))
 
     def _make_room(self, need: int, for_id: str) -> None:

@@ -17,6 +17,7 @@ from render_core import bundle
 from render_core.bundle import (
     CURRENT_SCHEMA_VERSION,
     read_bundle,
+    read_bundle_and_manifest,
     read_manifest,
     upgrade_manifest,
     validate_bundle,
@@ -171,6 +172,14 @@ def test_fp16_round_trip_stays_fp16_within_tolerance(avatar, tmp_path):
         # fp16 keeps 11 significant bits: relative error <= 2^-11, absolute <= 3e-8 in the subnormal range.
         torch.testing.assert_close(back[name].float(), t, rtol=1e-3, atol=1e-6, msg=name)
     assert loaded.precision == "fp16" and avatar.precision == "fp32"
+
+
+def test_bundle_and_manifest_read_together_equal_their_separate_reads(bundle_path):
+    avatar, manifest = read_bundle_and_manifest(bundle_path)
+    alone = read_bundle(bundle_path)
+    assert manifest == read_manifest(bundle_path) and manifest["digest"].startswith("sha256:")
+    assert torch.equal(avatar.neutral.means, alone.neutral.means)
+    assert avatar.expression_names == alone.expression_names
 
 
 def test_loaded_tensors_are_memory_mapped_views_of_the_file(bundle_path):
