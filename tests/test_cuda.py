@@ -37,7 +37,7 @@ def _frame(frames: Frame, i: int) -> Frame:
 @pytest.mark.cuda
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
 def test_service_converts_gpu_frames_to_rgba8_on_the_device_as_on_the_host():
-    from service.engine import _rgba
+    _rgba = pytest.importorskip("service.engine", reason="the service's dependencies are not installed")._rgba
 
     rgb, alpha = torch.rand(2, 9, 13, 3) * 1.4 - 0.2, torch.rand(2, 9, 13)
     assert np.array_equal(_rgba(rgb.cuda(), alpha.cuda()), _rgba(rgb, alpha))
