@@ -81,12 +81,6 @@ namespace avx512 { const BackwardKernels& backward_kernels(); }
 // The backward kernels of the instruction set named like Kernels::name.
 const BackwardKernels& backward_kernels_for(const Kernels& k);
 
-// Tiles of a visible splat (the tile rectangle bin_frame uses).
-inline void splat_tiles(const Splat& s, int& tx0, int& tx1, int& ty0, int& ty1) {
-    tx0 = int(s.x0) / kTile, tx1 = (int(s.x1) - 1) / kTile;
-    ty0 = int(s.y0) / kTile, ty1 = (int(s.y1) - 1) / kTile;
-}
-
 struct BackwardTimings {
     double raster_ms = 0.0;   // compositing backward (tiles)
     double project_ms = 0.0;  // pair reduction + projection backward

@@ -77,9 +77,8 @@ static void backward_tile(const Splat* frame, const uint32_t* ids, int count, in
 
     auto slot_of = [&](int i) -> float* {
         const uint32_t g = ids[i];
-        int tx0, tx1, ty0, ty1;
-        splat_tiles(frame[g], tx0, tx1, ty0, ty1);
-        return moments + size_t(kMoments) * (goff[g] + uint32_t((ty - ty0) * (tx1 - tx0 + 1) + (tx - tx0)));
+        const TileRect r = tile_rect(frame[g]);
+        return moments + size_t(kMoments) * (goff[g] + uint32_t((ty - r.y0) * (r.x1 - r.x0 + 1) + (tx - r.x0)));
     };
     for (int i = int(maxlast); i < count; ++i) std::fill_n(slot_of(i), kMoments, 0.0f);
 

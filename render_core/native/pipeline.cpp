@@ -119,9 +119,7 @@ void bin_frame(const Splat* s, int n, int tiles_x, int tiles, FrameBins& fb, int
             if (i + kAhead < i1) __builtin_prefetch(&s[order[i + kAhead]]);
             const Splat& g = s[order[i]];
             fb.sorted[i] = g.t;
-            TileRect& r = fb.rects[i];
-            r.x0 = uint16_t(int(g.x0) / kTile), r.x1 = uint16_t((int(g.x1) - 1) / kTile);
-            r.y0 = uint16_t(int(g.y0) / kTile), r.y1 = uint16_t((int(g.y1) - 1) / kTile);
+            const TileRect r = fb.rects[i] = tile_rect(g);
             for (int ty = r.y0; ty <= r.y1; ++ty)
                 for (int tx = r.x0; tx <= r.x1; ++tx) ++cnt[ty * tiles_x + tx];
         }

@@ -14,10 +14,15 @@ struct Timings {
     double bin_ms = 0.0;  // part of raster_ms: depth sort and tile binning
 };
 
-// Tile rectangle of a visible splat (inclusive).
+// Tile rectangle of a visible splat (inclusive): the tiles bin_frame puts it in.
 struct TileRect {
     uint16_t x0, x1, y0, y1;
 };
+
+inline TileRect tile_rect(const Splat& s) {
+    return {uint16_t(int(s.x0) / kTile), uint16_t((int(s.x1) - 1) / kTile), uint16_t(int(s.y0) / kTile),
+            uint16_t((int(s.y1) - 1) / kTile)};
+}
 
 // One frame's depth order and tile bins (bin_frame); the vectors are reused from call to call.
 struct FrameBins {

@@ -26,9 +26,8 @@ void pair_offsets(const Splat* s, int n, uint32_t* goff) {
     for (int i = 0; i < n; ++i) {
         goff[i] = uint32_t(run);
         if (s[i].x0 < s[i].x1) {
-            int tx0, tx1, ty0, ty1;
-            splat_tiles(s[i], tx0, tx1, ty0, ty1);
-            run += uint64_t(tx1 - tx0 + 1) * uint64_t(ty1 - ty0 + 1);
+            const TileRect r = tile_rect(s[i]);
+            run += uint64_t(r.x1 - r.x0 + 1) * uint64_t(r.y1 - r.y0 + 1);
         }
     }
     if (run >= (uint64_t(1) << 32)) throw std::length_error("more than 2^32 (Gaussian, tile) pairs in one frame");
