@@ -295,19 +295,18 @@ def _coerced(tr: Tracking) -> Tracking:
     """A copy with the file dtypes (float32 arrays, int64 indices, lists of names) where that is lossless in kind;
     anything else is left for validate() to report."""
 
-    def floats(a):
+    def cast(a, dtype, kinds: str):
         try:
             b = np.asarray(a)
         except Exception:
             return a
-        return b.astype(np.float32) if b.dtype.kind in "fiu" else b
+        return b.astype(dtype) if b.dtype.kind in kinds else b
+
+    def floats(a):
+        return cast(a, np.float32, "fiu")
 
     def indices(a):
-        try:
-            b = np.asarray(a)
-        except Exception:
-            return a
-        return b.astype(np.int64) if b.dtype.kind in "iu" else b
+        return cast(a, np.int64, "iu")
 
     def names(v):
         if isinstance(v, np.ndarray) and v.ndim == 1 and v.dtype.kind == "U":
