@@ -22,7 +22,7 @@ from torch import Tensor
 
 from .avatar import Avatar, Gaussians
 from .camera import Cameras
-from .deform import Frame, Splats, blend, shade, skin
+from .deform import Frame, blend, shade, skin
 from .errors import ShapeError
 from .raster import RasterOutput, check_backend, gsplat_backend, native, render
 
@@ -69,11 +69,6 @@ class DeviceAvatar:
         rows = (self.base + (e @ self.deltas).float()).reshape(b, n, -1).split(self.widths, -1)
         return Gaussians(means=rows[0], quats=rows[1], log_scales=rows[2], opacity_logits=rows[3][..., 0],
                          sh=rows[4].reshape(b, n, *self.sh_shape))
-
-    def splats(self, frame: Frame) -> Splats:
-        """Blend and skin B frames (``frame`` already checked; moved to the device here)."""
-        frame = frame.to(torch.float32, self.device)
-        return skin(self.avatar, self.blend(frame.expression), frame)
 
 
 class _Clock:
@@ -141,15 +136,16 @@ class AvatarRenderer:
             return RasterOutput(rgb, alpha, depth, timings=timings)
         if self.device_avatar is not None:
             return self._render_device(frame, cameras, background)
+        clock = _Clock(torch.device("cpu"))
         with torch.no_grad():
-            t0 = time.perf_counter()
+            clock.mark()
             blended = blend(self._compute_avatar, frame.expression)
-            t1 = time.perf_counter()
+            clock.mark()
             splats = skin(self._compute_avatar, blended, frame)
-            t2 = time.perf_counter()
+            clock.mark()
             out = render(splats, cameras, backend=self.backend, background=background, mode=self.avatar.raster_mode)
-            t3 = time.perf_counter()
-        out.timings = {"blend": (t1 - t0) * 1e3, "lbs": (t2 - t1) * 1e3, "raster": (t3 - t2) * 1e3}
+            clock.mark()
+        out.timings = clock.stages(("blend", "lbs", "raster"))
         return out
 
     def _render_device(self, frame: Frame, cameras: Cameras, background: Tensor | None) -> RasterOutput:
