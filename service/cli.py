@@ -8,7 +8,7 @@ import json
 import sys
 from pathlib import Path
 
-from render_core import cli as core_cli
+from render_core.tools import cli as core_cli
 
 
 def cmd_serve(args: argparse.Namespace) -> int:

@@ -30,8 +30,8 @@ import torch
 
 from blendsplat.v1 import render_pb2 as pb
 from render_core.camera import Cameras
-from render_core.codecs import Encoder, make_encoder
 from render_core.deform import Frame
+from render_core.media.codecs import Encoder, make_encoder
 from render_core.raster import native
 
 from . import params
@@ -240,7 +240,7 @@ class Engine:
             entry = await self.cache.load(avatar_id)
         else:
             from render_core.renderer import AvatarRenderer
-            from render_core.synth import synth_avatar
+            from render_core.tools.synth import synth_avatar
 
             avatar = synth_avatar(gaussians=256, blendshapes=4)
             entry = Loaded("warm-up", avatar, AvatarRenderer(avatar, self.settings.backend), "", 0, 0)

@@ -21,8 +21,8 @@ import uvicorn
 from render_core.bundle import write_bundle
 from render_core.errors import FaceModelError
 from render_core.facemodel.open_head import open_head
-from render_core.initialize import demo_albedo, init_avatar
-from render_core.synth import synth_avatar
+from render_core.tools.synth import synth_avatar
+from render_core.train.initialize import demo_albedo, init_avatar
 
 from .engine import Engine
 from .grpc_server import GrpcServer

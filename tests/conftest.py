@@ -1,7 +1,7 @@
 import pytest
 import torch
 
-from render_core.synth import synth_avatar
+from render_core.tools.synth import synth_avatar
 
 
 @pytest.fixture(scope="session")

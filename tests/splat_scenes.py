@@ -5,9 +5,9 @@ import math
 
 import torch
 
-from render_core.bench import random_frames
 from render_core.camera import orbit
 from render_core.deform import deform, shade
+from render_core.tools.bench import random_frames
 
 
 def psnr(a, b, peak=1.0):

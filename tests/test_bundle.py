@@ -24,7 +24,7 @@ from render_core.bundle import (
     write_bundle,
 )
 from render_core.errors import BundleError
-from render_core.synth import synth_avatar
+from render_core.tools.synth import synth_avatar
 
 _DTYPE = {torch.float32: "F32", torch.float16: "F16", torch.int64: "I64", torch.int32: "I32"}
 

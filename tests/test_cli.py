@@ -9,7 +9,7 @@ import numpy as np
 import OpenImageIO as oiio
 import pytest
 
-from render_core.cli import main
+from render_core.tools.cli import main
 
 
 @pytest.fixture(scope="module")
@@ -111,7 +111,7 @@ def test_bench_render_json(capsys):
 
 
 def test_console_script_prints_only_json_on_stdout(bundle):
-    proc = subprocess.run([sys.executable, "-m", "render_core.cli", "bundle", "inspect", str(bundle), "--json"],
+    proc = subprocess.run([sys.executable, "-m", "render_core.tools.cli", "bundle", "inspect", str(bundle), "--json"],
                           capture_output=True, text=True, check=True)
     assert json.loads(proc.stdout)["schema_version"] >= 1
 
@@ -179,7 +179,7 @@ def test_eval_cli_prints_the_metrics(tmp_path, head, capsys):
 
     from render_core.bundle import write_bundle
     from render_core.data.generate import synth_dataset
-    from render_core.initialize import init_avatar
+    from render_core.train.initialize import init_avatar
     from service.cli import main
 
     synth_dataset(tmp_path / "ds", frames=6, size=32, seed=1, facemodel=head)

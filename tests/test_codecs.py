@@ -6,9 +6,9 @@ import numpy as np
 import OpenImageIO as oiio
 import pytest
 
-from render_core.cli import main
-from render_core.codecs import CODECS, H264Decoder, decode_image, h264_crf, make_encoder
 from render_core.errors import FrameError, ShapeError
+from render_core.media.codecs import CODECS, H264Decoder, decode_image, h264_crf, make_encoder
+from render_core.tools.cli import main
 
 
 def smooth(h, w, t=0.0):

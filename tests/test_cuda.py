@@ -13,12 +13,12 @@ import pytest
 import torch
 from splat_scenes import assert_same_image, head_scene, psnr, random_scene
 
-from render_core.bench import bench_raster_backward, bench_render, framed_camera, random_frames
 from render_core.camera import orbit
 from render_core.deform import Frame, deform, shade, skin
 from render_core.raster import RasterOutput, backend_names, check_backend, gsplat_backend, reference, render
 from render_core.renderer import AvatarRenderer, DeviceAvatar
-from render_core.synth import synth_avatar
+from render_core.tools.bench import bench_raster_backward, bench_render, framed_camera, random_frames
+from render_core.tools.synth import synth_avatar
 
 gpu = pytest.mark.skipif(not gsplat_backend.available(), reason=f"cuda backend: {gsplat_backend.unavailable_reason()}")
 no_cuda = pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has a CUDA device")

@@ -9,11 +9,11 @@ import math
 import pytest
 import torch
 
-from render_core.bench import bench_render, random_frames
 from render_core.camera import orbit
 from render_core.deform import Frame, deform
 from render_core.raster import gsplat_backend, reference, render
 from render_core.renderer import AvatarRenderer
+from render_core.tools.bench import bench_render, random_frames
 
 gsplat = pytest.importorskip("gsplat", reason="gsplat is not installed (pip install --no-deps 'gsplat>=1.5,<1.6')")
 import gsplat_cpu  # noqa: E402  (tests/: needs gsplat)

@@ -8,11 +8,11 @@ import pytest
 import torch
 
 from render_core.camera import Cameras
-from render_core.initialize import init_avatar
 from render_core.rotation import axis_angle_to_matrix, matrix_to_quat
 from render_core.train import TrainableAvatar, get_preset
 from render_core.train.densify import Densifier, screen_radii
 from render_core.train.grids import LookupGrid
+from render_core.train.initialize import init_avatar
 from render_core.train.loop import make_optimizer
 from tests.test_grids import blob_model
 

@@ -10,8 +10,17 @@ import pytest
 import torch
 
 from render_core.errors import DatasetError
-from render_core.evaluate import PSNR_CAP, evaluate, psnr, psnr_from_mse, psnr_masked, run_eval, ssim, ssim_batch
-from render_core.plot import nice_ticks, plot_curves
+from render_core.evaluation.plot import nice_ticks, plot_curves
+from render_core.evaluation.report import (
+    PSNR_CAP,
+    evaluate,
+    psnr,
+    psnr_from_mse,
+    psnr_masked,
+    run_eval,
+    ssim,
+    ssim_batch,
+)
 
 
 def _image(seed: int = 0, h: int = 24, w: int = 20) -> torch.Tensor:
@@ -95,7 +104,7 @@ def test_ssim_of_a_constant_offset_matches_the_formula():
 @pytest.fixture(scope="module")
 def scene(head, tmp_path_factory):
     from render_core.data.generate import synth_dataset
-    from render_core.initialize import init_avatar
+    from render_core.train.initialize import init_avatar
 
     root = tmp_path_factory.mktemp("evaluate")
     summary = synth_dataset(root / "ds", frames=6, size=48, seed=1, facemodel=head)
@@ -165,7 +174,7 @@ def test_evaluate_reports_lpips_when_its_weights_are_local(scene, monkeypatch, t
 
 
 def test_evaluate_rejects_a_mismatched_avatar_and_bad_arguments(scene):
-    from render_core.synth import synth_avatar
+    from render_core.tools.synth import synth_avatar
 
     root, _, avatar = scene
     with pytest.raises(DatasetError, match="cannot be evaluated on .*expressions"):

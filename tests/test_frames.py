@@ -8,9 +8,9 @@ from render_core.data import read_dataset
 from render_core.data.frames import check_compatible, frame_inputs, targets
 from render_core.data.generate import synth_dataset
 from render_core.errors import DatasetError
-from render_core.initialize import init_avatar
 from render_core.renderer import AvatarRenderer
-from render_core.synth import synth_avatar
+from render_core.tools.synth import synth_avatar
+from render_core.train.initialize import init_avatar
 
 
 def test_initialised_avatar_matches_the_synthetic_masks(head, tmp_path):

@@ -17,9 +17,9 @@ from render_core.data.generate import (
     script_cameras,
     synth_dataset,
 )
+from render_core.data.meshraster import icosphere, rasterize
 from render_core.data.portable import TRACKING_ARRAYS
 from render_core.facemodel.model import FaceModel
-from render_core.meshraster import icosphere, rasterize
 from render_core.rotation import axis_angle_to_matrix
 
 JOINTS = ["root", "neck", "jaw", "eye_l", "eye_r"]

@@ -9,11 +9,11 @@ import torch
 
 from render_core.deform import Frame, blend
 from render_core.facemodel import FaceModel
-from render_core.initialize import init_avatar, poisson_disk
 from render_core.raster import native
 from render_core.renderer import AvatarRenderer
 from render_core.rotation import axis_angle_to_matrix, matrix_to_quat, quat_multiply
 from render_core.train.geometry import closest_points
+from render_core.train.initialize import init_avatar, poisson_disk
 
 
 @pytest.fixture(scope="module")

@@ -1,4 +1,4 @@
-"""LPIPS in plain torch (render_core.lpips): weight loading, the distance's plumbing, evaluation's use of it.
+"""LPIPS in plain torch (render_core.evaluation.lpips): weight loading, the distance's plumbing, evaluation's use of it.
 
 The official weights are not available here: random weights (non-negative linear layers, like the trained ones)
 saved to a temporary file stand in for them."""
@@ -9,7 +9,7 @@ import pytest
 import torch
 from safetensors.torch import save_file
 
-from render_core.lpips import ENV, LPIPS, expected_shapes, from_environment, load_weights
+from render_core.evaluation.lpips import ENV, LPIPS, expected_shapes, from_environment, load_weights
 
 
 def random_weights(seed: int = 0) -> dict[str, torch.Tensor]:

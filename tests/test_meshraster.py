@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from render_core.camera import Cameras, intrinsics, orbit
-from render_core.meshraster import icosphere, rasterize, rasterize_mesh, vertex_normals
+from render_core.data.meshraster import icosphere, rasterize, rasterize_mesh, vertex_normals
 
 W, H, F = 40, 30, 25.0
 

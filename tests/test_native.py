@@ -13,13 +13,13 @@ import numpy as np
 import pytest
 import torch
 
-from render_core.bench import framed_camera, random_frames
 from render_core.camera import Cameras, intrinsics, look_at, orbit
 from render_core.deform import Frame, deform
 from render_core.errors import FrameError, ShapeError
 from render_core.raster import backend_names, default_backend, native, reference, render
 from render_core.renderer import AvatarRenderer
-from render_core.synth import synth_avatar
+from render_core.tools.bench import framed_camera, random_frames
+from render_core.tools.synth import synth_avatar
 
 if not native.available():
     pytest.skip(f"native backend not built: {native.IMPORT_ERROR}", allow_module_level=True)

@@ -16,12 +16,12 @@ import numpy as np
 import pytest
 import torch
 
-from render_core.bench import framed_camera, random_frames
 from render_core.camera import Cameras, intrinsics, orbit
 from render_core.deform import deform, shade
 from render_core.errors import ShapeError
 from render_core.raster import native, reference
-from render_core.synth import synth_avatar
+from render_core.tools.bench import framed_camera, random_frames
+from render_core.tools.synth import synth_avatar
 from tests.test_native import extreme_scene, simple_camera
 
 if not native.available():

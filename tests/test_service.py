@@ -17,11 +17,11 @@ from websockets.sync.client import connect
 from blendsplat.v1 import render_pb2 as pb
 from blendsplat.v1 import render_pb2_grpc as pb_grpc
 from render_core.bundle import read_bundle, write_bundle
-from render_core.codecs import H264Decoder, decode_image
 from render_core.deform import Frame
 from render_core.drive import default_camera
+from render_core.media.codecs import H264Decoder, decode_image
 from render_core.renderer import AvatarRenderer
-from render_core.synth import synth_avatar
+from render_core.tools.synth import synth_avatar
 
 SIZE = 48
 

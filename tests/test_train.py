@@ -13,11 +13,11 @@ from render_core.data import read_dataset
 from render_core.data.frames import frame_inputs, targets
 from render_core.data.generate import synth_dataset
 from render_core.deform import blend
-from render_core.initialize import init_avatar
 from render_core.renderer import AvatarRenderer
 from render_core.rotation import matrix_to_quat, quat_multiply
 from render_core.train import CONSISTENCY, TrainableAvatar, get_preset, train
 from render_core.train.geometry import closest_points, consistency_range, displacement_magnitudes
+from render_core.train.initialize import init_avatar
 from render_core.train.loop import forward, load_checkpoint, make_optimizer
 from render_core.train.losses import MouthCylinder, psnr, ssim
 from tests.test_initialize import tetra_model

@@ -36,7 +36,7 @@ from torch import Tensor
 
 from ..camera import Cameras, look_at
 from ..facemodel.model import FaceModel
-from ..meshraster import rasterize
+from .meshraster import rasterize
 
 __all__ = ["ALBEDO_CHANNELS", "DotField", "FaceLandmarks", "SkinAlbedo", "SpectralNoise", "face_landmarks", "lambert"]
 

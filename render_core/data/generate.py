@@ -31,7 +31,7 @@ Train/test split: the last 15% of the frames (at least one) are the test set and
   never seen, and up to 25% beyond either range) with roll up to +-5 deg;
 - gaze: training fixations within +-1 (normalised), test fixations up to +-1.15.
 
-Rendering: :mod:`render_core.meshraster` at size x size, RGB = procedural albedo (:mod:`.albedo`, a function of the
+Rendering: :mod:`render_core.data.meshraster` at size x size, RGB = procedural albedo (:mod:`.albedo`, a function of the
 rest surface position, never written to the dataset) x Lambert shading (one fixed light + ambient) from the posed
 mesh's interpolated vertex normals, over black; the mask is the exact coverage of the mesh. The camera frames the
 head (the skull joint's vertices) at 65% of the image height, 0.7 m away, front view.
@@ -54,9 +54,9 @@ from torch import Tensor
 
 from ..camera import Cameras, look_at
 from ..facemodel.model import FaceModel
-from ..meshraster import interpolate, rasterize, vertex_normals
 from ..rotation import axis_angle_to_matrix
 from .albedo import SkinAlbedo, lambert
+from .meshraster import interpolate, rasterize, vertex_normals
 
 __all__ = ["Script", "contact_sheet", "make_script", "render_frames", "script_cameras", "synth_dataset",
            "held_out_count"]

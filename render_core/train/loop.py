@@ -31,11 +31,11 @@ from ..data.frames import check_compatible, frame_inputs, targets
 from ..deform import Frame, shade, skin
 from ..errors import DatasetError
 from ..facemodel import FaceModel, read_facemodel
-from ..initialize import init_avatar
 from ..raster import native
 from . import losses
 from .densify import Densifier
 from .grids import lookup_grid
+from .initialize import init_avatar
 from .model import TrainableAvatar
 from .presets import Preset, get_preset
 
@@ -246,8 +246,8 @@ def load_checkpoint(path: Path) -> dict:
 # ----------------------------------------------------------------------------------------------------- train
 def _report(bundle: Path, data_dir, workdir: Path, held_out: int) -> dict:
     """Held-out evaluation (report JSON and contact sheet) and the loss curves, in the workdir."""
-    from ..evaluate import evaluate
-    from ..plot import plot_curves
+    from ..evaluation.plot import plot_curves
+    from ..evaluation.report import evaluate
 
     out = {"plot": str(plot_curves(workdir / "log.jsonl", workdir / "curves.png", keys=("loss", "psnr")))}
     if held_out:

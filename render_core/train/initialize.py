@@ -23,11 +23,11 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
-from .avatar import Avatar, Gaussians, sh_coeff_count
-from .camera import front_camera
-from .facemodel import FaceModel
-from .rotation import matrix_to_quat, quat_multiply
-from .sh import rotate_sh
+from ..avatar import Avatar, Gaussians, sh_coeff_count
+from ..camera import front_camera
+from ..facemodel import FaceModel
+from ..rotation import matrix_to_quat, quat_multiply
+from ..sh import rotate_sh
 
 SKIN = (0.80, 0.62, 0.52)
 MOUTH = (0.12, 0.05, 0.05)

@@ -7,11 +7,11 @@ from pathlib import Path
 import torch
 from tqdm import tqdm
 
-from .avatar import Avatar
-from .bundle import read_bundle
-from .drive import read_drive_file
-from .encode import FORMATS, VideoWriter, write_image
-from .renderer import AvatarRenderer
+from ..avatar import Avatar
+from ..bundle import read_bundle
+from ..drive import read_drive_file
+from ..media.files import FORMATS, VideoWriter, write_image
+from ..renderer import AvatarRenderer
 
 
 def render_drive(

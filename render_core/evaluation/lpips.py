@@ -167,7 +167,7 @@ def from_environment() -> tuple[LPIPS | None, str]:
     path = os.environ.get(ENV, "").strip()
     if not path:
         return None, (f"lpips is null: no LPIPS weights (set {ENV} to a local safetensors file of the LPIPS AlexNet "
-                      "weights, see render_core/lpips.py; evaluation never downloads them)")
+                      "weights, see render_core/evaluation/lpips.py; evaluation never downloads them)")
     try:
         return LPIPS.from_file(path), f"lpips: AlexNet v0.1 with the weights in {path}, inputs scaled to [-1, 1]"
     except (OSError, ValueError, RuntimeError) as e:

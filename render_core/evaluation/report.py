@@ -9,7 +9,7 @@ with the frame's tracking and camera and compared with the ground truth whose ba
   window positions;
 - ``psnr_head``: the MSE over the pixels inside the ground-truth head mask only (mask > 0.5), in dB; frames whose
   mask is empty have none;
-- ``lpips``: LPIPS (AlexNet v0.1, :mod:`render_core.lpips`) only when its weights are in the local file named by
+- ``lpips``: LPIPS (AlexNet v0.1, :mod:`.lpips`) only when its weights are in the local file named by
   ``BLENDSPLAT_LPIPS_WEIGHTS`` (nothing is ever downloaded); otherwise null, with the reason in ``notes``.
 
 Identical images have an infinite PSNR; every PSNR here is capped at :data:`PSNR_CAP` (100 dB, an MSE of 1e-10)
@@ -30,8 +30,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .avatar import Avatar
-from .errors import DatasetError
+from ..avatar import Avatar
+from ..errors import DatasetError
 
 PSNR_CAP = 100.0  # dB reported for identical images (MSE below 1e-10)
 SSIM_WINDOW = 11
@@ -118,7 +118,7 @@ def ssim(pred, target, data_range: float = 1.0) -> float:
 
 
 def _lpips_metric(width: int, height: int):
-    """(callable(pred [B,H,W,3], gt) -> [B] or None, note). Never downloads: LPIPS (:mod:`render_core.lpips`)
+    """(callable(pred [B,H,W,3], gt) -> [B] or None, note). Never downloads: LPIPS (:mod:`render_core.evaluation.lpips`)
     needs its AlexNet weights in the local file named by ``BLENDSPLAT_LPIPS_WEIGHTS``."""
     from . import lpips
 
@@ -161,10 +161,10 @@ def evaluate(bundle_or_avatar, data_dir, split: str = "test", batch: int = 4, co
 
     Raises DatasetError when the dataset is malformed, does not animate this avatar (other expression or joint
     names) or has no frame in ``split``; BundleError for an unreadable bundle; ValueError for a bad argument."""
-    from .bundle import read_bundle
-    from .data.frames import check_compatible, frame_inputs, targets
-    from .data.portable import read_dataset
-    from .renderer import AvatarRenderer
+    from ..bundle import read_bundle
+    from ..data.frames import check_compatible, frame_inputs, targets
+    from ..data.portable import read_dataset
+    from ..renderer import AvatarRenderer
 
     t_start = time.perf_counter()
     if batch < 1:

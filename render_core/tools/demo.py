@@ -6,7 +6,7 @@ import json
 import math
 from pathlib import Path
 
-from .bundle import write_bundle
+from ..bundle import write_bundle
 from .offline import render_bundle
 from .synth import synth_avatar
 

@@ -31,8 +31,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from .camera import Cameras
-from .errors import ShapeError
+from ..camera import Cameras
+from ..errors import ShapeError
 
 __all__ = ["Fragments", "icosphere", "interpolate", "rasterize", "rasterize_mesh", "vertex_normals"]
 

@@ -8,8 +8,8 @@ import logging
 import sys
 from pathlib import Path
 
-from .avatar import RASTER_MODES
-from .errors import BlendsplatError
+from ..avatar import RASTER_MODES
+from ..errors import BlendsplatError
 
 log = logging.getLogger("blendsplat")
 
@@ -28,7 +28,7 @@ def _background(text: str) -> tuple[float, float, float]:
 
 
 def cmd_bundle_synth(args: argparse.Namespace) -> int:
-    from .bundle import write_bundle
+    from ..bundle import write_bundle
     from .synth import synth_avatar
 
     avatar = synth_avatar(args.gaussians, args.blendshapes, seed=args.seed, sh_degree=args.sh_degree,
@@ -41,10 +41,10 @@ def cmd_bundle_synth(args: argparse.Namespace) -> int:
 
 
 def cmd_bundle_init(args: argparse.Namespace) -> int:
-    from .bundle import write_bundle
-    from .facemodel import read_facemodel
-    from .facemodel.open_head import open_head
-    from .initialize import demo_albedo, init_avatar
+    from ..bundle import write_bundle
+    from ..facemodel import read_facemodel
+    from ..facemodel.open_head import open_head
+    from ..train.initialize import demo_albedo, init_avatar
 
     model = read_facemodel(args.facemodel) if args.facemodel else open_head()
     albedo = demo_albedo(model) if args.albedo == "demo" else None
@@ -58,7 +58,7 @@ def cmd_bundle_init(args: argparse.Namespace) -> int:
 
 
 def cmd_bundle_inspect(args: argparse.Namespace) -> int:
-    from .bundle import read_manifest
+    from ..bundle import read_manifest
 
     manifest = read_manifest(args.file)
     if args.json:
@@ -76,7 +76,7 @@ def cmd_bundle_inspect(args: argparse.Namespace) -> int:
 
 
 def cmd_bundle_validate(args: argparse.Namespace) -> int:
-    from .bundle import validate_bundle
+    from ..bundle import validate_bundle
 
     try:
         manifest = validate_bundle(args.file)
@@ -99,8 +99,8 @@ def cmd_render(args: argparse.Namespace) -> int:
 
 
 def cmd_bench_render(args: argparse.Namespace) -> int:
+    from ..bundle import read_bundle
     from .bench import bench_render
-    from .bundle import read_bundle
 
     avatar = read_bundle(args.bundle) if args.bundle else None
     report = bench_render(backend=args.backend, gaussians=args.gaussians, blendshapes=args.blendshapes,
@@ -156,8 +156,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def cmd_facemodel_build_open(args: argparse.Namespace) -> int:
-    from .facemodel import write_facemodel
-    from .facemodel.open_head import build_open_head
+    from ..facemodel import write_facemodel
+    from ..facemodel.open_head import build_open_head
 
     model = build_open_head()
     path = write_facemodel(model, args.out)
@@ -170,7 +170,7 @@ def cmd_facemodel_build_open(args: argparse.Namespace) -> int:
 
 
 def cmd_facemodel_inspect(args: argparse.Namespace) -> int:
-    from .facemodel import read_facemodel
+    from ..facemodel import read_facemodel
 
     m = read_facemodel(args.file)
     _emit({"name": m.name, "vertices": m.num_vertices, "triangles": int(m.faces.shape[0]),
@@ -182,8 +182,8 @@ def cmd_facemodel_inspect(args: argparse.Namespace) -> int:
 
 
 def cmd_facemodel_import_flame(args: argparse.Namespace) -> int:
-    from .facemodel import write_facemodel
-    from .facemodel.flame import load_flame
+    from ..facemodel import write_facemodel
+    from ..facemodel.flame import load_flame
 
     model = load_flame(args.pkl, n_expression=args.n_expression)
     path = write_facemodel(model, args.out)
@@ -193,14 +193,14 @@ def cmd_facemodel_import_flame(args: argparse.Namespace) -> int:
 
 
 def cmd_data_validate(args: argparse.Namespace) -> int:
-    from .data import run_validate
+    from ..data import run_validate
 
     return run_validate(args.dir, as_json=args.json)
 
 
 def cmd_train(args: argparse.Namespace) -> int:
-    from .train.loop import train
-    from .train.presets import PRESETS
+    from ..train.loop import train
+    from ..train.presets import PRESETS
 
     preset = PRESETS[args.preset]
     if args.gaussians:
@@ -215,14 +215,14 @@ def cmd_train(args: argparse.Namespace) -> int:
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
-    from .evaluate import run_eval
+    from ..evaluation.report import run_eval
 
     return run_eval(args.bundle, args.data, as_json=args.json, split=args.split, batch=args.batch,
                     report=args.report, contact_sheet=args.contact_sheet)
 
 
 def cmd_data_synth(args: argparse.Namespace) -> int:
-    from .data.generate import synth_dataset
+    from ..data.generate import synth_dataset
 
     summary = synth_dataset(args.out, frames=args.frames, size=args.size, seed=args.seed, facemodel=args.facemodel)
     log.info("wrote %d frames (%d train, %d test) to %s", summary["frames"], summary["train"], summary["test"],
@@ -232,14 +232,14 @@ def cmd_data_synth(args: argparse.Namespace) -> int:
 
 
 def cmd_data_convert(args: argparse.Namespace) -> int:
-    from .data import run_convert
+    from ..data import run_convert
 
     return run_convert(args.src, args.out, n_expression=args.n_expression, test_frames=args.test_frames,
                        trusted=args.trusted, fps=args.fps, image_format=args.image_format)
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from .raster import KNOWN_BACKENDS, default_backend
+    from ..raster import KNOWN_BACKENDS, default_backend
 
     p = argparse.ArgumentParser(prog="blendsplat", description=__doc__)
     p.add_argument("-v", "--verbose", action="store_true", help="debug logging on stderr")

@@ -30,7 +30,7 @@ from fractions import Fraction
 
 import numpy as np
 
-from .errors import FrameError, ShapeError
+from ..errors import FrameError, ShapeError
 
 CODECS = ("jpeg", "png", "raw_rgba", "h264")
 MEDIA_TYPES = {"jpeg": "image/jpeg", "png": "image/png", "raw_rgba": "application/octet-stream",

@@ -21,12 +21,12 @@ import time
 import numpy as np
 import torch
 
-from .avatar import Avatar
-from .camera import Cameras, orbit
-from .deform import Frame
-from .encode import to_uint8
-from .raster import check_backend, gsplat_backend, native
-from .renderer import AvatarRenderer
+from ..avatar import Avatar
+from ..camera import Cameras, orbit
+from ..deform import Frame
+from ..media.files import to_uint8
+from ..raster import check_backend, gsplat_backend, native
+from ..renderer import AvatarRenderer
 from .synth import synth_avatar
 
 TARGET_COVERAGE = 0.5
@@ -171,7 +171,7 @@ def _time_raster_step(raster, avatar: Avatar, cams: Cameras, frames: int, warmup
     """Median forward and backward ms of ``raster(means, quats, scales, opacities, colors, cams, bg, mode)`` ->
     (rgb, alpha) on fresh posed splats each frame, for the loss sum(w rgb) + sum(v alpha) with random w, v.
     ``device``: where the inputs live (a CUDA device is synchronised before each clock reading)."""
-    from .deform import deform, shade
+    from ..deform import deform, shade
 
     device = device or torch.device("cpu")
     sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
@@ -214,7 +214,7 @@ def bench_raster_backward(gaussians: int = 10_000, size: int = 256, frames: int 
     ``device="cuda"``: the timed rasterizer is gsplat's on the GPU (training's CUDA step, inputs already on the
     GPU), reported under ``cuda`` with the GPU's name, and the native one (where built) runs as the comparison
     instead of the reference."""
-    from .raster import reference
+    from ..raster import reference
 
     if device not in ("cpu", "cuda"):
         raise ValueError(f"device must be 'cpu' or 'cuda', got {device!r}")
@@ -286,7 +286,7 @@ def bench_codecs(size: int = 512, frames: int = 30, gaussians: int = 20_000, see
 
     Each codec first encodes one frame on a throwaway encoder (imports, tables); the timed encoder then starts
     fresh, so H.264 includes its opening IDR frame as a new stream would."""
-    from .codecs import CODECS, make_encoder
+    from ..media.codecs import CODECS, make_encoder
 
     avatar = synth_avatar(gaussians, 50, seed=seed).with_precision("fp16")
     renderer = AvatarRenderer(avatar)

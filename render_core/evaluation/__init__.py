@@ -1,0 +1,2 @@
+"""Evaluation of a trained avatar on held-out frames: the report (:mod:`.report`), LPIPS (:mod:`.lpips`) and
+plots (:mod:`.plot`)."""
