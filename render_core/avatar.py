@@ -1,4 +1,4 @@
-"""The Gaussian blendshape avatar (METHOD.md sections 1 and 11).
+"""The Gaussian blendshape avatar (docs/method.md sections 1 and 11).
 
 An :class:`Avatar` holds the neutral Gaussians B0, K expression deltas dB_k for all five properties, per-Gaussian
 LBS weights over a named joint tree, optional pose correctives and eyelid offsets, and the mouth-interior Gaussians
@@ -25,7 +25,7 @@ def check_raster_mode(mode: str) -> None:
     if mode not in RASTER_MODES:
         raise ValueError(f"raster mode must be one of {RASTER_MODES}, got {mode!r}")
 
-# FLAME's joints (METHOD.md section 11) and the open head's.
+# FLAME's joints (docs/method.md section 11) and the open head's.
 FLAME_JOINTS: tuple[str, ...] = ("root", "neck", "jaw", "eye_l", "eye_r")
 FLAME_PARENTS: tuple[int, ...] = (-1, 0, 1, 1, 1)
 FLAME_MOUTH_JOINTS: tuple[str, str] = ("neck", "jaw")

@@ -1,4 +1,4 @@
-"""Avatar bundles: one self-contained, memory-mappable file per avatar (ARCHITECTURE.md, "Avatar bundle").
+"""Avatar bundles: one self-contained, memory-mappable file per avatar (docs/architecture.md, "Avatar bundle").
 
 A bundle is a standard safetensors file::
 

@@ -1,4 +1,4 @@
-"""Animation of a Gaussian blendshape avatar: frame parameters -> deformed splats (METHOD.md section 2).
+"""Animation of a Gaussian blendshape avatar: frame parameters -> deformed splats (docs/method.md section 2).
 
 Pipeline per frame (batched over B frames, never looping over Gaussians):
 
@@ -107,7 +107,7 @@ class Frame:
             expression: [B, K] (or [K]) coefficients by position, or a mapping expression name -> value
                 (a float or a [B] tensor); names not given are zero. None: all zero.
             joints: a mapping joint name -> [B, 3] (or [3]) axis-angle, [B, 6] (or [6]) 6D rotation (first
-                two rows of the matrix, METHOD.md section 8) or [B, 3, 3] matrices; or a full [B, J, 3] or
+                two rows of the matrix, docs/method.md section 8) or [B, 3, 3] matrices; or a full [B, J, 3] or
                 [B, J, 6] tensor (leading B optional) or [B, J, 3, 3] matrices. Joints not named stay at
                 identity.
             eyelids: [B, 2] (or [2]) eyelid coefficients, or None.
@@ -438,14 +438,14 @@ def _posed_quats(rot: Tensor, quats: Tensor) -> Tensor:
 
 
 def skin(avatar: Avatar, blended: Gaussians, frame: Frame, rotate_sh: bool = False) -> Splats:
-    """Pose blended Gaussians and append the mouth interior (METHOD.md section 2, steps 2-7).
+    """Pose blended Gaussians and append the mouth interior (docs/method.md section 2, steps 2-7).
 
     Steps, batched over B frames:
 
     1. Pose correctives: means += pose_features(R) @ pose_correctives (FLAME posedirs), if the avatar has
        them.
     2. Eyelids: means += sum_e eyelids[:, e] * eyelid_offsets[e], if both the avatar and the frame have them.
-       Applied in the rest pose, *before* LBS, so the eyelids follow the head. (METHOD.md says "after LBS"
+       Applied in the rest pose, *before* LBS, so the eyelids follow the head. (docs/method.md says "after LBS"
        because the tracker keeps the head still, where both orders give the same result.)
     3. LBS: T = I + sum_j w_j (A_j - I) (equal to sum_j w_j A_j since the weights sum to 1, and exactly the
        identity at rest); x' = T[:, :3] x + T[:, 3].
@@ -539,7 +539,7 @@ def deform(avatar: Avatar, frame: Frame, rotate_sh: bool = False) -> Splats:
 
 
 def shade(splats: Splats, camera_centres: Tensor) -> Tensor:
-    """View-dependent RGB of every Gaussian (METHOD.md section 9 step 6).
+    """View-dependent RGB of every Gaussian (docs/method.md section 9 step 6).
 
     colour = max(eval_sh(sh, d_local) + 0.5, 0), d = normalise(mean - camera_centre) in world space and
     d_local = R^T d when ``splats.sh_rotations`` is set (else d).

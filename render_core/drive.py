@@ -1,4 +1,4 @@
-"""Driving files: one JSON object per line, each a frame to render (METHOD.md section 11).
+"""Driving files: one JSON object per line, each a frame to render (docs/method.md section 11).
 
 A line may hold:
   "expression": a list of exactly K numbers, or an object {name: value} (any subset; others are zero)

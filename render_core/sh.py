@@ -3,7 +3,7 @@
 Conventions (identical to gsplat's ``spherical_harmonics`` and Inria's 3DGS): coefficients are stored
 ``[..., C, 3]`` with C = (degree + 1)^2, the DC term first, then band 1 (-y, z, -x), band 2 and band 3 in the
 order and with the signs of :func:`sh_basis`. Directions are unit vectors (they are not normalised here).
-The renderer adds 0.5 to the evaluated value and clamps at 0 (METHOD.md section 9 step 6); that happens in
+The renderer adds 0.5 to the evaluated value and clamps at 0 (docs/method.md section 9 step 6); that happens in
 :func:`render_core.deform.shade`, not here.
 """
 

@@ -1,4 +1,4 @@
-"""Lookup grids of LBS weights and displacement magnitudes (render_core.train.grids, METHOD.md section 3)."""
+"""Lookup grids of LBS weights and displacement magnitudes (render_core.train.grids, docs/method.md section 3)."""
 
 from __future__ import annotations
 

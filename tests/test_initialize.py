@@ -1,4 +1,4 @@
-"""Avatar initialisation from a face model (METHOD.md section 3, per Gaussian)."""
+"""Avatar initialisation from a face model (docs/method.md section 3, per Gaussian)."""
 
 from __future__ import annotations
 

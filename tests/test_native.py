@@ -1,4 +1,4 @@
-"""The native C++ CPU backend (render_core.raster.native) against the pure-torch reference (METHOD.md section 9).
+"""The native C++ CPU backend (render_core.raster.native) against the pure-torch reference (docs/method.md section 9).
 
 Acceptance bars: PSNR >= 50 dB on RGB and |alpha error| <= 1/255 on >= 99.9% of pixels against the reference, on
 random and head-like scenes, for every SIMD path this CPU can execute; fp16 against fp32 blendshape storage of the

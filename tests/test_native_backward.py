@@ -1,5 +1,5 @@
 """The native rasterizer's backward (render_core.raster.native.rasterize_differentiable) against the autograd
-gradients of the pure-torch reference (METHOD.md section 9).
+gradients of the pure-torch reference (docs/method.md section 9).
 
 The native path computes in float32; the oracle is the reference's autograd on the same inputs in float64 (the
 exact gradient of the same function, without float32 rounding), so no finite differences are needed here.

@@ -1,4 +1,4 @@
-"""The reference rasterizer against an independent per-pixel brute-force composite of METHOD.md section 9."""
+"""The reference rasterizer against an independent per-pixel brute-force composite of docs/method.md section 9."""
 
 import math
 

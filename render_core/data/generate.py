@@ -9,12 +9,12 @@ tracking holds exactly that:
   overlaps at most three others; blinks come on top). With a model lacking the ARKit names, actions are random
   disjoint subsets of one or two coefficients. Values are clamped to [0, 1].
 - Jaw: the ``jawOpen`` coefficient when the model has one (the open head; its jaw joint stays at rest, as
-  METHOD.md section 11 has it), else the ``jaw`` joint, opening about +x (up to 0.3 rad).
+  docs/method.md section 11 has it), else the ``jaw`` joint, opening about +x (up to 0.3 rad).
 - Gaze: the eight ``eyeLook*`` coefficients when the model has them (they move the open head's eyeballs, and are
   what ARKit clients stream; its eye joints stay at rest), else the ``eye_l``/``eye_r`` joints (yaw about +y,
   pitch about -x, both eyes alike); fixations joined by 3-frame saccades.
 - Blinks: ``eyeBlinkLeft/Right`` when present, else the eyelid basis when present; ``eyelids`` are zeros otherwise.
-- Head pose: in the CAMERA extrinsics, as a metrical tracker stores it (METHOD.md section 7): the head's rotation
+- Head pose: in the CAMERA extrinsics, as a metrical tracker stores it (docs/method.md section 7): the head's rotation
   R_h about the pivot p (the ``head`` joint, else the skull joint) becomes R = R0 R_h, t = t0 + R0 (p - R_h p) for
   the front camera (R0, t0). Root, neck and head joints stay at rest. Since the light is fixed in the face model's
   frame, shading moves with the head (a head-mounted light, as a tracker's canonical space sees it).

@@ -1,6 +1,6 @@
 """Metrical-tracker / INSTA subject folders (local, trusted data only) and their conversion to the portable format.
 
-Layout read (METHOD.md sections 7 and 11)::
+Layout read (docs/method.md sections 7 and 11)::
 
     checkpoint/00000.frame ...   torch-saved dict per frame:
         flame:   exp [1, 100], shape [1, 300], jaw [1, 6] (6D), eyes [1, 12] (6D eye_l then eye_r), eyelids [1, 2]

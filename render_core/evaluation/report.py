@@ -1,4 +1,4 @@
-"""Held-out evaluation of an avatar on a tracked-video dataset (METHOD.md section 10, the paper's protocol).
+"""Held-out evaluation of an avatar on a tracked-video dataset (docs/method.md section 10, the paper's protocol).
 
 Every frame of the split (the dataset's held-out ``test`` frames by default) is rendered over a black background
 with the frame's tracking and camera and compared with the ground truth whose background is masked to black:

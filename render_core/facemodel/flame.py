@@ -13,7 +13,7 @@ pickled ``x``), and ``copyreg._reconstructor``/``object``/``set``/``_codecs.enco
 Python 3 protocol 2 pickles use. Any other global raises :class:`FaceModelError` naming it, before anything is
 called. Nothing from the file is executed; scipy and chumpy are never imported.
 
-Conventions of the result (METHOD.md sections 8 and 11): joints root, neck, jaw, eye_l, eye_r with parents
+Conventions of the result (docs/method.md sections 8 and 11): joints root, neck, jaw, eye_l, eye_r with parents
 -1, 0, 1, 1, 1; ``expression_basis[k] = shapedirs[:, :, S + k]``, ``shape_basis[s] = shapedirs[:, :, s]``;
 ``pose_correctives[p] = posedirs[:, :, p]``, where p indexes the flattened (R_j - I) of joints 1..4, joint-major
 and row-major, which is :func:`render_core.deform.pose_features`' order (FLAME: v += posedirs @ features).

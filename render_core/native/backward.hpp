@@ -1,4 +1,4 @@
-// The backward pass of the posed-Gaussian rasterizer (METHOD.md section 9): a training forward that also keeps
+// The backward pass of the posed-Gaussian rasterizer (docs/method.md section 9): a training forward that also keeps
 // what the backward needs, and the backward itself (raster_backward.cpp orchestrates; backward.inl holds the
 // kernels, compiled once per instruction set like kernels.inl).
 //

@@ -1,6 +1,6 @@
 // The per-frame kernels, written once over a SIMD wrapper V (simd.hpp) and compiled once per instruction set
 // (kernels_scalar.cpp, kernels_avx2.cpp, kernels_avx512.cpp define V and BS_NS, then include this file).
-// Semantics: METHOD.md sections 2 and 9, exactly as render_core/deform.py and render_core/raster/reference.py.
+// Semantics: docs/method.md sections 2 and 9, exactly as render_core/deform.py and render_core/raster/reference.py.
 
 #include <algorithm>
 #include <cmath>

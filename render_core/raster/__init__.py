@@ -1,6 +1,6 @@
 """Rasterizer backends behind one entry point, :func:`render`.
 
-Every backend implements METHOD.md section 9 with the same signature and semantics: ``reference`` (pure torch,
+Every backend implements docs/method.md section 9 with the same signature and semantics: ``reference`` (pure torch,
 differentiable; the oracle the others are tested against), ``native`` (the C++ CPU backend, the default when
 it is built) and ``cuda`` (gsplat 1.5.x's CUDA kernels, differentiable; registered where torch sees a CUDA device
 and gsplat is installed). Asking for a backend that is not available here is an error that says why.

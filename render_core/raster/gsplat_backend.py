@@ -1,6 +1,6 @@
 """The CUDA backend: gsplat 1.5.x's rasterization kernels (forward and backward) behind ``render()``.
 
-METHOD.md section 9 *is* gsplat 1.5.3's "classic" rasterization (and its "antialiased" mode), so this backend only
+docs/method.md section 9 *is* gsplat 1.5.3's "classic" rasterization (and its "antialiased" mode), so this backend only
 translates conventions; it adds no splatting code of its own. Two pieces:
 
 - :func:`gsplat_arguments` turns our posed splats and :class:`~render_core.camera.Cameras` into the keyword
@@ -34,7 +34,7 @@ from ..camera import Cameras
 from .reference import EPS2D, NEAR, TILE, RasterOutput
 
 GSPLAT_SPEC = "gsplat>=1.5,<1.6"
-FAR = 1e10  # gsplat's default far plane (METHOD.md has none)
+FAR = 1e10  # gsplat's default far plane (docs/method.md has none)
 PACKED = False  # [B, 1, N, ...] outputs: no nnz compaction (most of a head's Gaussians are visible)
 
 
@@ -116,7 +116,7 @@ def gsplat_arguments(
     *,
     device: torch.device | str | None = None,
 ) -> dict:
-    """Keyword arguments of ``gsplat.rasterization`` that render METHOD.md section 9 as
+    """Keyword arguments of ``gsplat.rasterization`` that render docs/method.md section 9 as
     :func:`render_core.raster.reference.rasterize` does (float32, on ``device``, default: that of ``means``).
 
     gsplat's batch dimension carries the B splat sets, each seen by its one camera; colours are already

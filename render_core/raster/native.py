@@ -151,7 +151,7 @@ def rasterize(
     simd: str | None = None,
     threads: int = 0,
 ) -> tuple[Tensor, Tensor, Tensor, dict]:
-    """Splat posed Gaussians exactly as :func:`render_core.raster.reference.rasterize` (METHOD.md section 9).
+    """Splat posed Gaussians exactly as :func:`render_core.raster.reference.rasterize` (docs/method.md section 9).
 
     Returns rgb [B, H, W, 3], alpha [B, H, W], depth [B, H, W] and the stage timings. No autograd.
     """
@@ -224,7 +224,7 @@ def rasterize_differentiable(
     """:func:`rasterize` with a native backward: rgb [B, H, W, 3] and alpha [B, H, W] (float32), differentiable
     w.r.t. means, quats, scales, opacities, colours and the background (depth is not returned: not differentiable).
 
-    The same image as :func:`rasterize`, bit for bit. The gradients are those of METHOD.md section 9 exactly as the
+    The same image as :func:`rasterize`, bit for bit. The gradients are those of docs/method.md section 9 exactly as the
     reference rasterizer's autograd gives them (no gradient through skipped, clamped or stopped pairs, nor through
     culling), computed in float32 and returned in each input's dtype; bitwise the same for any thread count.
 

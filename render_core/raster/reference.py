@@ -1,4 +1,4 @@
-"""The pure-torch reference rasterizer: METHOD.md section 9 exactly (gsplat 1.5.3 "classic" semantics), and the
+"""The pure-torch reference rasterizer: docs/method.md section 9 exactly (gsplat 1.5.3 "classic" semantics), and the
 "antialiased" mode. Differentiable through autograd; the oracle every faster backend is tested against.
 
 How it works: every (Gaussian, pixel) pair that section 9 evaluates (every pixel of every 16x16 tile that the
@@ -33,7 +33,7 @@ PAIR_CHUNK = 1 << 23
 
 @dataclass
 class Projection:
-    """Per-Gaussian screen-space quantities for B cameras (METHOD.md section 9, steps 1-3)."""
+    """Per-Gaussian screen-space quantities for B cameras (docs/method.md section 9, steps 1-3)."""
 
     means2d: Tensor  # [B, N, 2] pixel coordinates (x right, y down)
     conics: Tensor  # [B, N, 3] inverse 2D covariance (a, b, c): sigma = 0.5 (a dx^2 + c dy^2) + b dx dy
@@ -210,7 +210,7 @@ def rasterize(
     background: Tensor | None = None,  # [B, 3] or [3]; default black
     mode: str = "classic",
 ) -> RasterOutput:
-    """Splat B sets of N Gaussians, one per camera, exactly as METHOD.md section 9 defines.
+    """Splat B sets of N Gaussians, one per camera, exactly as docs/method.md section 9 defines.
 
     Conventions: world-to-camera R, t (OpenCV), quaternions wxyz, linear scales, opacities in [0, 1], colours
     already evaluated (no SH here). Returns RGB over ``background``, alpha and alpha-composited depth.

@@ -260,7 +260,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="blendshapes with compact support, as a face model's (zero pairs are not stored); "
                         "default: dense, every pair non-zero")
     s.set_defaults(fn=cmd_bundle_synth)
-    s = bsub.add_parser("init", help="an animatable avatar initialised on a face model (METHOD.md section 3): "
+    s = bsub.add_parser("init", help="an animatable avatar initialised on a face model (docs/method.md section 3): "
                                      "the untrained starting point, in seconds")
     s.add_argument("--facemodel", type=Path, default=None,
                    help="a face-model file (default: the open head, built on first use under ./data)")

@@ -1,4 +1,4 @@
-"""Training: learn Gaussian blendshapes from a tracked video (METHOD.md sections 3-6).
+"""Training: learn Gaussian blendshapes from a tracked video (docs/method.md sections 3-6).
 
 - :mod:`.model`: the trainable avatar with the blendshape-consistency parametrisation (Eq. 2) and its ablations;
 - :mod:`.geometry`: closest surface points and per-blendshape displacement magnitudes d_{i,k};

@@ -1,4 +1,4 @@
-"""Densification and pruning (METHOD.md section 6) with blendshape entries copied to children.
+"""Densification and pruning (docs/method.md section 6) with blendshape entries copied to children.
 
 Statistics: after each backward, the view-space positional gradient of every face Gaussian, in gsplat's /
 3DGS's normalised units (the pixel-space gradient of the projected centre times (W/2, H/2)), recovered from the
@@ -48,7 +48,7 @@ def screen_radii(
     cameras: Cameras,  # one camera
 ) -> Tensor:
     """Screen radius [N] in pixels of each Gaussian seen by ``cameras[0]``: ceil(3 sqrt(lambda_max)) of its blurred
-    2D covariance (the projection of METHOD.md section 9: clamped Jacobian, + 0.3 on the diagonal), as 3DGS's
+    2D covariance (the projection of docs/method.md section 9: clamped Jacobian, + 0.3 on the diagonal), as 3DGS's
     rasterizer reports it; 0 for Gaussians that are culled (behind the near plane, too transparent, off screen)."""
     with torch.no_grad():
         cams = Cameras(cameras.K[:1], cameras.R[:1], cameras.t[:1], cameras.width, cameras.height)

@@ -1,4 +1,4 @@
-"""Closest surface points and per-blendshape displacement magnitudes (METHOD.md sections 3 and 4).
+"""Closest surface points and per-blendshape displacement magnitudes (docs/method.md sections 3 and 4).
 
 ``d_{i,k}`` is the displacement magnitude, from M0 to M_k, of the neutral-mesh point closest to Gaussian i: the
 barycentric interpolation, at that point, of the vertices' ``|expression_basis[k]|``; the LBS weights of a point
@@ -200,7 +200,7 @@ def displacement_magnitudes(model: FaceModel, points: Tensor) -> Tensor:
 
 
 def consistency_range(model: FaceModel) -> tuple[float, float]:
-    """(eps, d_max) of f(x) = (x - eps) / (d_max - eps) (METHOD.md section 4).
+    """(eps, d_max) of f(x) = (x - eps) / (d_max - eps) (docs/method.md section 4).
 
     The reference code takes eps = 0.1 x the largest vertex displacement of the *last* blendshape and d_max = the
     largest of the *first*, relying on FLAME's components being sorted by variance (first = largest motion, last =

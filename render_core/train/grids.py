@@ -1,4 +1,4 @@
-"""Lookup grids of LBS weights and displacement magnitudes around the neutral mesh (METHOD.md section 3).
+"""Lookup grids of LBS weights and displacement magnitudes around the neutral mesh (docs/method.md section 3).
 
 The paper precomputes, on a 256^3 grid around M0 (its bounding box plus a small margin), the LBS weights [J] and
 the per-blendshape displacement magnitudes d_k [K] of the surface point closest to each node, and gives any

@@ -1,4 +1,4 @@
-"""An animatable avatar straight from a face model (METHOD.md section 3, computed per Gaussian, no grid).
+"""An animatable avatar straight from a face model (docs/method.md section 3, computed per Gaussian, no grid).
 
 - Positions: Poisson-disk samples of the neutral mesh (:func:`poisson_disk`: weighted sample elimination of 5 N
   area-weighted candidates down to exactly N; no two samples closer than about 0.69 of the hexagonal-packing

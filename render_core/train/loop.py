@@ -1,6 +1,6 @@
 """The training loop: a tracked video (portable dataset) -> a Gaussian blendshape avatar bundle.
 
-Per iteration (METHOD.md sections 5 and 6): one random training frame (a seeded generator), blend (Eq. 1 with
+Per iteration (docs/method.md sections 5 and 6): one random training frame (a seeded generator), blend (Eq. 1 with
 the consistency parametrisation of :mod:`.model`) -> skin -> shade (SH at the view direction, degree ramped) ->
 the differentiable rasterizer (native C++ forward and backward; gsplat's on CUDA) -> 0.8 L1 + 0.2 D-SSIM
 + 10 alpha MSE + 100 mouth cylinder -> backward -> Adam (eps 1e-15, per-group learning rates, xyz decay).
@@ -91,7 +91,7 @@ def active_sh_degree(preset: Preset, iteration: int) -> int:
 
 
 def make_optimizer(model: TrainableAvatar, preset: Preset) -> torch.optim.Adam:
-    """Adam (eps 1e-15) with METHOD.md section 6's per-group learning rates (fused where supported)."""
+    """Adam (eps 1e-15) with docs/method.md section 6's per-group learning rates (fused where supported)."""
     rates = {
         "means": preset.lr_xyz, "quats": preset.lr_rotation, "log_scales": preset.lr_scale,
         "opacity_logits": preset.lr_opacity, "sh_dc": preset.lr_sh_dc, "sh_rest": preset.lr_sh_rest,

@@ -1,4 +1,4 @@
-"""Training losses (METHOD.md section 5): L = (0.8 L1 + 0.2 D-SSIM) + 10 L_alpha + 100 L_reg.
+"""Training losses (docs/method.md section 5): L = (0.8 L1 + 0.2 D-SSIM) + 10 L_alpha + 100 L_reg.
 
 Images are [B, H, W, 3] (RGB) and [B, H, W] (alpha, mask) in [0, 1].
 """

@@ -1,4 +1,4 @@
-"""Training presets: ``tiny`` (minutes on a 2-core CPU) and ``paper`` (METHOD.md section 6)."""
+"""Training presets: ``tiny`` (minutes on a 2-core CPU) and ``paper`` (docs/method.md section 6)."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ class Preset:
     sh_degree: int = 3
     sh_every: int = 1000  # SH degree + 1 every this many iterations
     consistency: str = "all"
-    # Learning rates (METHOD.md section 6). Neutral (also used for the mouth interior):
+    # Learning rates (docs/method.md section 6). Neutral (also used for the mouth interior):
     lr_xyz: float = 1.6e-4
     lr_xyz_final: float = 1.6e-6
     xyz_decay_steps: int = 30_000
