@@ -1,0 +1,54 @@
+"""Atomic file replacement: a reader sees the old file or the whole new one, never a torn write.
+
+Every file the library and the service publish (bundles, face models, reports, checkpoints, uploads) goes through
+:func:`atomic_path` (write to a temporary file in the same folder, then rename) or :func:`publish` (rename a file
+that is already written).
+"""
+
+from __future__ import annotations
+
+import os
+import secrets
+from collections.abc import Iterator
+from contextlib import contextmanager, suppress
+from pathlib import Path
+
+
+def publish(tmp: str | os.PathLike, path: str | os.PathLike, *, mode: int = 0o644) -> Path:
+    """Make the written file ``tmp`` readable with ``mode``, flush it to disk and rename it onto ``path`` (same
+    file system). The rename is then made durable where the platform can open a folder."""
+    tmp, path = Path(tmp), Path(path)
+    with open(tmp, "rb+") as f:
+        os.fchmod(f.fileno(), mode)  # some writers (safetensors, mkstemp) create 0600 files; published ones are shared
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+    with suppress(OSError):  # not every platform can open a directory
+        fd = os.open(path.parent, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+    return path
+
+
+@contextmanager
+def atomic_path(path: str | os.PathLike, *, mode: int = 0o644) -> Iterator[Path]:
+    """Yield a fresh temporary path beside ``path`` to write to; on a normal exit publish it as ``path``
+    (:func:`publish`), on an exception remove it and leave ``path`` as it was.
+
+    Example::
+
+        with atomic_path("head.bundle") as tmp:
+            safetensors.numpy.save_file(arrays, str(tmp))
+    """
+    path = Path(path)
+    tmp = path.parent / f".{path.name}.{secrets.token_hex(8)}.tmp"
+    # O_EXCL: never clobber someone else's file; the umask applies as for any new file until publish sets the mode
+    os.close(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666))
+    try:
+        yield tmp
+        publish(tmp, path, mode=mode)
+    except BaseException:
+        with suppress(OSError):
+            os.unlink(tmp)
+        raise
