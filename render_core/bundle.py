@@ -45,10 +45,8 @@ import json
 import math
 import mmap
 import os
-import secrets
 import sys
 from collections.abc import Callable, Iterable, Mapping
-from contextlib import suppress
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
@@ -59,6 +57,7 @@ import safetensors.numpy
 import torch
 from torch import Tensor
 
+from .atomic import atomic_path
 from .avatar import RASTER_MODES, Avatar, Gaussians
 from .errors import BlendsplatError, BundleError
 
@@ -127,7 +126,8 @@ def write_bundle(
     _check_tensor_table(manifest, {n: (_DTYPE_NAMES[t.dtype], tuple(t.shape)) for n, t in tensors.items()})
     arrays = {name: t.numpy() for name, t in tensors.items()}
     manifest["digest"] = _content_digest(manifest, (_as_bytes(arrays[name]) for name in sorted(arrays)))
-    _atomic_write(Path(path), arrays, {MANIFEST_KEY: json.dumps(manifest, separators=(",", ":"))})
+    with atomic_path(path) as tmp:
+        _serialize(arrays, str(tmp), {MANIFEST_KEY: json.dumps(manifest, separators=(",", ":"))})
     return manifest
 
 
@@ -214,29 +214,6 @@ def _package_version() -> str:
 def _serialize(arrays: Mapping[str, np.ndarray], path: str, metadata: dict[str, str]) -> None:
     """Write a safetensors file: the one call of the serializer (tests replace it to simulate a crash)."""
     safetensors.numpy.save_file(dict(arrays), path, metadata=metadata)
-
-
-def _atomic_write(path: Path, arrays: Mapping[str, np.ndarray], metadata: dict[str, str]) -> None:
-    directory = path.parent
-    tmp = directory / f".{path.name}.{secrets.token_hex(8)}.tmp"
-    # O_EXCL: never clobber someone else's file; mode 0o666 so the umask applies as for any new file.
-    os.close(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666))
-    try:
-        _serialize(arrays, str(tmp), metadata)
-        with open(tmp, "rb+") as f:
-            os.fchmod(f.fileno(), 0o644)  # safetensors creates 0600 files; bundles are meant to be shared
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        with suppress(OSError):
-            os.unlink(tmp)
-        raise
-    with suppress(OSError):  # persist the rename; not every platform can open a directory
-        fd = os.open(directory, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
 
 
 # ---------------------------------------------------------------------------------------------------- reading
