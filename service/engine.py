@@ -25,14 +25,13 @@ from collections.abc import AsyncIterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
-import numpy as np
 import torch
 
 from blendsplat.v1 import render_pb2 as pb
 from render_core.camera import Cameras
 from render_core.deform import Frame
 from render_core.media.codecs import Encoder, make_encoder
-from render_core.raster import native
+from render_core.media.pixels import to_rgba8
 
 from . import params
 from .cache import AvatarCache, Loaded
@@ -400,17 +399,6 @@ class Engine:
         return out
 
 
-def _rgba(rgb: torch.Tensor, alpha: torch.Tensor) -> np.ndarray:
-    """[B, H, W, 3] and [B, H, W] floats in [0, 1] -> [B, H, W, 4] uint8 (rounded), on the host.
-
-    Frames rendered on a GPU (the cuda backend) are converted there, so that a quarter of the bytes cross to the
-    host."""
-    if native.available() and rgb.device.type == "cpu":
-        return native.to_rgba8(rgb, alpha)
-    rgba = torch.cat([rgb, alpha[..., None]], -1)
-    return rgba.clamp(0, 1).mul(255).add_(0.5).to(torch.uint8).cpu().numpy()
-
-
 def _render(entry: Loaded, jobs: list[Job], encoders: list[Encoder]) -> list[Rendered | BaseException]:
     """Render B jobs of one avatar in one call and encode each (runs on the render thread)."""
     start = time.perf_counter()
@@ -419,7 +407,7 @@ def _render(entry: Loaded, jobs: list[Job], encoders: list[Encoder]) -> list[Ren
     frames = Frame.stack([j.frame for j in jobs])
     cameras = Cameras.cat([j.camera for j in jobs])
     out = entry.renderer.render(frames, cameras, torch.stack([j.background for j in jobs]))
-    images = _rgba(out.rgb, out.alpha)
+    images = to_rgba8(out.rgb, out.alpha)
     t = out.timings
     results: list[Rendered | BaseException] = []
     for job, encoder, image in zip(jobs, encoders, images, strict=True):

@@ -15,6 +15,7 @@ from splat_scenes import assert_same_image, head_scene, psnr, random_scene
 
 from render_core.camera import orbit
 from render_core.deform import Frame, deform, shade, skin
+from render_core.media.pixels import to_rgba8
 from render_core.raster import RasterOutput, backend_names, check_backend, gsplat_backend, reference, render
 from render_core.renderer import AvatarRenderer, DeviceAvatar
 from render_core.tools.bench import bench_raster_backward, bench_render, framed_camera, random_frames
@@ -36,11 +37,9 @@ def _frame(frames: Frame, i: int) -> Frame:
 # ---------------------------------------------------------------------------------------------- on a GPU
 @pytest.mark.cuda
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
-def test_service_converts_gpu_frames_to_rgba8_on_the_device_as_on_the_host():
-    _rgba = pytest.importorskip("service.engine", reason="the service's dependencies are not installed")._rgba
-
+def test_rgba8_of_gpu_frames_is_converted_on_the_device_as_on_the_host():
     rgb, alpha = torch.rand(2, 9, 13, 3) * 1.4 - 0.2, torch.rand(2, 9, 13)
-    assert np.array_equal(_rgba(rgb.cuda(), alpha.cuda()), _rgba(rgb, alpha))
+    assert np.array_equal(to_rgba8(rgb.cuda(), alpha.cuda()), to_rgba8(rgb, alpha))
 
 
 @pytest.mark.cuda

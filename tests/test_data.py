@@ -10,7 +10,6 @@ import zipfile
 from pathlib import Path
 
 import numpy as np
-import OpenImageIO as oiio
 import pytest
 import torch
 
@@ -29,6 +28,8 @@ from render_core.data import (
     write_dataset,
 )
 from render_core.errors import DatasetError
+from render_core.media.files import write_image
+from render_core.media.pixels import to_uint8
 from render_core.rotation import axis_angle_to_matrix, matrix_to_rot6d
 
 N, H, W, NK = 6, 16, 16, 4
@@ -63,16 +64,6 @@ def make_masks(n: int = N, h: int = H, w: int = W) -> list[np.ndarray]:
     y, x = np.mgrid[0:h, 0:w]
     return [np.where((x - w / 2) ** 2 + (y - h / 2) ** 2 < (4 + i) ** 2, 255, (x * 7 + i) % 256).astype(np.uint8)
             for i in range(n)]
-
-
-def write_png(path: Path, pixels: np.ndarray, unassociated: bool = False) -> None:
-    pixels = np.ascontiguousarray(pixels if pixels.ndim == 3 else pixels[..., None])
-    spec = oiio.ImageSpec(pixels.shape[1], pixels.shape[0], pixels.shape[2], oiio.UINT8)
-    if unassociated:
-        spec.attribute("oiio:UnassociatedAlpha", 1)
-    out = oiio.ImageOutput.create(str(path))
-    assert out.open(str(path), spec) and out.write_image(pixels), out.geterror()
-    out.close()
 
 
 @pytest.fixture(scope="module")
@@ -123,8 +114,8 @@ def test_png_round_trip_is_exact(good):
     for i in range(N):
         f, m = ds.frame(i), ds.mask(i)
         assert f.dtype == np.float32 and f.shape == (H, W, 3) and m.dtype == np.float32 and m.shape == (H, W)
-        assert np.array_equal(np.round(f * 255).astype(np.uint8), frames[i])
-        assert np.array_equal(np.round(m * 255).astype(np.uint8), masks[i])
+        assert np.array_equal(to_uint8(f), frames[i])
+        assert np.array_equal(to_uint8(m), masks[i])
     manifest = json.loads((good / "dataset.json").read_text())
     assert manifest == {"format": FORMAT, "version": VERSION, "frames": N, "width": W, "height": H, "fps": 25.0,
                         "face_model": "flame", "frame_files": "frames/{:05d}.png", "mask_files": "masks/{:05d}.png"}
@@ -149,7 +140,7 @@ def test_lossy_and_float_round_trips(tmp_path, fmt, tol, magic):
     for i in range(N):
         err = np.abs(ds.frame(i) - frames[i] / np.float32(255)).max()
         assert err <= tol + 1e-7, (fmt, i, err)
-        assert np.array_equal(np.round(ds.mask(i) * 255).astype(np.uint8), make_masks()[i])
+        assert np.array_equal(to_uint8(ds.mask(i)), make_masks()[i])
 
 
 def write_yuv_video(path: Path, frames: list[np.ndarray], fps: int = 30) -> None:
@@ -195,7 +186,7 @@ def test_writer_casts_float64_tracking_and_accepts_float_frames(tmp_path):
     ds = read_dataset(root)
     assert ds.tracking.expression.dtype == np.float32
     np.testing.assert_allclose(ds.tracking.R, make_tracking(dtype=np.float64).R, atol=1e-7)
-    assert np.array_equal(np.round(ds.frame(2) * 255).astype(np.uint8), smooth_frames()[2])
+    assert np.array_equal(to_uint8(ds.frame(2)), smooth_frames()[2])
     assert set(np.unique(ds.mask(1))) <= {0.0, 1.0}
 
 
@@ -301,11 +292,11 @@ DAMAGE = {
     "truncated frame": (_truncate("frames/00002.png"), ["frames/00002.png: cannot decode"]),
     "truncated mask": (_truncate("masks/00004.png"), ["masks/00004.png: cannot decode"]),
     "missing frame": (lambda r: (r / "frames/00001.png").unlink(), ["frames/00001.png: missing"]),
-    "mask wrong size": (lambda r: write_png(r / "masks/00003.png", np.zeros((8, 8), np.uint8)),
+    "mask wrong size": (lambda r: write_image(r / "masks/00003.png", np.zeros((8, 8), np.uint8)),
                         ["masks/00003.png: size 8x8, expected 16x16"]),
-    "frame with alpha": (lambda r: write_png(r / "frames/00000.png", np.zeros((H, W, 4), np.uint8)),
+    "frame with alpha": (lambda r: write_image(r / "frames/00000.png", np.zeros((H, W, 4), np.uint8)),
                          ["frames/00000.png: 4 channels, expected 3 (RGB)"]),
-    "mask with 3 channels": (lambda r: write_png(r / "masks/00000.png", np.zeros((H, W, 3), np.uint8)),
+    "mask with 3 channels": (lambda r: write_image(r / "masks/00000.png", np.zeros((H, W, 3), np.uint8)),
                              ["masks/00000.png: 3 channels, expected 1 (grey)"]),
     "jpeg named png": (lambda r: shutil.copy(write_dataset(r.parent / "j", smooth_frames(), make_masks(),
                                                            make_tracking(), "jpeg") / "frames/00000.jpg",
@@ -477,7 +468,7 @@ def make_metrical(root: Path, n: int = 8, size: tuple[int, int] = (16, 12), extr
         if extra is not None and i == n - 1:
             frame["config"] = extra
         torch.save(frame, root / "checkpoint" / f"{i:05d}.frame")
-        write_png(root / "images" / f"{i:05d}.png", truth["rgba"][i], unassociated=True)
+        write_image(root / "images" / f"{i:05d}.png", truth["rgba"][i])
     return truth
 
 
@@ -509,8 +500,8 @@ def test_convert_metrical(tmp_path):
     ds = read_dataset(out)
     assert len(ds) == 8 and ds.tracking.expression.shape == (8, 50)
     for i in range(8):
-        assert np.array_equal(np.round(ds.frame(i) * 255).astype(np.uint8), truth["rgba"][i, ..., :3])
-        assert np.array_equal(np.round(ds.mask(i) * 255).astype(np.uint8), truth["rgba"][i, ..., 3])
+        assert np.array_equal(to_uint8(ds.frame(i)), truth["rgba"][i, ..., :3])
+        assert np.array_equal(to_uint8(ds.mask(i)), truth["rgba"][i, ..., 3])
 
 
 def test_metrical_frame_needing_unpickling_is_refused_unless_trusted(tmp_path):
@@ -546,7 +537,7 @@ def test_metrical_problems_are_named(tmp_path):
         read_metrical(tmp_path / "b")
 
     make_metrical(tmp_path / "c", n=3)
-    write_png(tmp_path / "c/images/00000.png", np.zeros((12, 16, 3), np.uint8))
+    write_image(tmp_path / "c/images/00000.png", np.zeros((12, 16, 3), np.uint8))
     with pytest.raises(DatasetError, match="expected 4"):
         read_metrical(tmp_path / "c")
 

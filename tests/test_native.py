@@ -16,6 +16,7 @@ import torch
 from render_core.camera import Cameras, intrinsics, look_at, orbit
 from render_core.deform import Frame, deform
 from render_core.errors import FrameError, ShapeError
+from render_core.media.pixels import to_uint8
 from render_core.raster import backend_names, default_backend, native, reference, render
 from render_core.renderer import AvatarRenderer
 from render_core.tools.bench import framed_camera, random_frames
@@ -920,11 +921,10 @@ def test_auto_picks_the_fastest_path_that_agrees_with_scalar(monkeypatch, caplog
         native.verified_fastest_path.cache_clear()
 
 
-def test_to_rgba8_rounds_and_clamps_like_torch():
+def test_native_rgba8_rounds_and_clamps_as_to_uint8():
     rgb = torch.rand(2, 5, 7, 3) * 1.4 - 0.2
     alpha = torch.rand(2, 5, 7)
-    want = (torch.cat([rgb, alpha[..., None]], -1).clamp(0, 1) * 255 + 0.5).to(torch.uint8).numpy()
-    assert np.array_equal(native.to_rgba8(rgb, alpha), want)
+    assert np.array_equal(native.to_rgba8(rgb, alpha), to_uint8(torch.cat([rgb, alpha[..., None]], -1)))
 
 
 def test_local_synth_avatar_leaves_pairs_unstored():

@@ -54,6 +54,8 @@ from torch import Tensor
 
 from ..camera import Cameras, look_at
 from ..facemodel.model import FaceModel
+from ..media.files import write_image
+from ..media.pixels import to_uint8
 from ..rotation import axis_angle_to_matrix
 from .albedo import SkinAlbedo, lambert
 from .meshraster import interpolate, rasterize, vertex_normals
@@ -442,8 +444,7 @@ def render_frames(model: FaceModel, script: Script, cameras: Cameras, albedo: Sk
                     colour = albedo(a[:, :c], footprint)
                     view = centres[b][None] - a[:, c:c + 3]
                     rgb[mask] = lambert(colour, a[:, c + 3:c + 6], view)
-                yield ((rgb * 255.0 + 0.5).clamp(0, 255).to(torch.uint8).numpy(),
-                       mask.to(torch.uint8).mul(255).numpy())
+                yield to_uint8(rgb), mask.to(torch.uint8).mul(255).numpy()
 
 
 def synth_dataset(out_dir, frames: int, size: int, seed: int, facemodel: FaceModel | str | os.PathLike | None = None,
@@ -509,11 +510,9 @@ def synth_dataset(out_dir, frames: int, size: int, seed: int, facemodel: FaceMod
 
 
 def contact_sheet(dataset_dir, out_png, count: int = 12, columns: int | None = None) -> Path:
-    """Write a grid of ``count`` frames of a dataset, evenly spaced over the video, to ``out_png`` (OpenImageIO).
+    """Write a grid of ``count`` frames of a dataset, evenly spaced over the video, to ``out_png``.
 
     Test frames get a 2-pixel red border, training frames a grey one."""
-    import OpenImageIO as oiio
-
     from .portable import read_dataset
 
     ds = read_dataset(dataset_dir)
@@ -530,13 +529,8 @@ def contact_sheet(dataset_dir, out_png, count: int = 12, columns: int | None = N
         r, c = divmod(k, cols)
         y, x = r * (h + 2 * pad), c * (w + 2 * pad)
         sheet[y:y + h + 2 * pad, x:x + w + 2 * pad] = (220, 40, 40) if i in test else (90, 90, 90)
-        sheet[y + pad:y + pad + h, x + pad:x + pad + w] = (np.clip(ds.frame(i), 0, 1) * 255 + 0.5).astype(np.uint8)
+        sheet[y + pad:y + pad + h, x + pad:x + pad + w] = to_uint8(ds.frame(i))
     out_png = Path(out_png)
     out_png.parent.mkdir(parents=True, exist_ok=True)
-    out = oiio.ImageOutput.create(str(out_png))
-    if out is None:
-        raise RuntimeError(f"cannot write {out_png}: {oiio.geterror()}")
-    out.open(str(out_png), oiio.ImageSpec(sheet.shape[1], sheet.shape[0], 3, "uint8"))
-    out.write_image(sheet)
-    out.close()
+    write_image(out_png, sheet)
     return out_png

@@ -29,6 +29,8 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import DatasetError
+from ..media.files import write_image
+from ..media.pixels import to_uint8
 
 FORMAT = "blendsplat-tracked-video"
 VERSION = 1
@@ -420,28 +422,6 @@ def _read_image(path: Path, rel: str, *, kind: str, width: int | None, height: i
 def _oneline(text: str) -> str:
     text = " / ".join(line.strip() for line in (text or "").splitlines() if line.strip())
     return text[:500] or "unknown error"
-
-
-def _write_image(path: Path, pixels: np.ndarray, fmt: str) -> None:
-    oiio = _oiio()
-    pixels = np.ascontiguousarray(pixels)
-    if pixels.ndim == 2:
-        pixels = pixels[..., None]
-    spec = oiio.ImageSpec(pixels.shape[1], pixels.shape[0], pixels.shape[2],
-                          oiio.FLOAT if fmt == "exr" else oiio.UINT8)
-    if fmt == "jpeg":
-        spec.attribute("compression", "jpeg:95")
-        spec.attribute("jpeg:subsampling", "4:4:4")
-    elif fmt == "exr":
-        spec.attribute("compression", "zip")
-    out = oiio.ImageOutput.create(str(path))
-    if out is None:
-        raise OSError(f"cannot create {path}: {oiio.geterror()}")
-    try:
-        if not out.open(str(path), spec) or not out.write_image(pixels):
-            raise OSError(f"cannot write {path}: {out.geterror()}")
-    finally:
-        out.close()
 
 
 # -------------------------------------------------------------------------------------------------------- video
@@ -858,7 +838,7 @@ def _as_uint8(a, what: str, channels: int) -> np.ndarray:
     if a.dtype.kind == "f":
         if not np.isfinite(a).all():
             raise DatasetError("non-finite values", field=what)
-        return (np.clip(a, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+        return to_uint8(a)
     raise DatasetError(f"dtype must be uint8 (or float in [0, 1]), got {a.dtype}", field=what)
 
 
@@ -921,7 +901,7 @@ def write_dataset(out_dir: str | os.PathLike, frames: Iterable[np.ndarray], mask
                 if mask.shape != (height, width):
                     raise DatasetError(f"size {mask.shape[1]}x{mask.shape[0]}, expected {width}x{height}",
                                        field=f"masks[{i}]")
-                _write_image(tmp / manifest["mask_files"].format(i), mask, "png")
+                write_image(tmp / manifest["mask_files"].format(i), mask)
             if next(frame_iter, _END) is not _END:
                 raise DatasetError(f"more frames than the tracking's {n}", field="frames")
             if next(mask_iter, _END) is not _END:
@@ -932,7 +912,7 @@ def write_dataset(out_dir: str | os.PathLike, frames: Iterable[np.ndarray], mask
         else:
             for i, rgb in enumerate(checked_frames()):
                 pixels = rgb.astype(np.float32) / 255.0 if fmt == "exr" else rgb
-                _write_image(tmp / manifest["frame_files"].format(i), pixels, fmt)
+                write_image(tmp / manifest["frame_files"].format(i), pixels)
         np.savez_compressed(tmp / TRACKING, **tracking.arrays())
         (tmp / MANIFEST).write_text(json.dumps(manifest, indent=2) + "\n")
         for p in (tmp, tmp / "masks", tmp / "frames"):

@@ -1,5 +1,4 @@
-"""Writing rendered frames: images through OpenImageIO (PNG 8-bit RGB, EXR float RGBA) and H.264 video through
-PyAV."""
+"""Writing files: images through OpenImageIO (PNG and JPEG 8-bit, EXR float) and H.264 video through PyAV."""
 
 from __future__ import annotations
 
@@ -7,33 +6,39 @@ from pathlib import Path
 
 import numpy as np
 import OpenImageIO as oiio
-import torch
 from torch import Tensor
 
-FORMATS = ("png", "exr", "mp4")
+from .pixels import to_uint8
+
+FORMATS = ("png", "exr", "mp4")  # offline rendering
+IMAGE_FORMATS = {".png": "png", ".jpg": "jpeg", ".jpeg": "jpeg", ".exr": "exr"}
 
 
-def to_uint8(rgb: Tensor) -> np.ndarray:
-    """[H, W, 3] float in [0, 1] -> uint8 (rounded, clamped)."""
-    return (rgb.detach().clamp(0, 1) * 255.0 + 0.5).to(torch.uint8).cpu().numpy()
-
-
-def write_image(path: str | Path, rgb: Tensor, alpha: Tensor | None = None) -> None:
-    """Write one frame. ``.png``: 8-bit RGB (the colour over the background); ``.exr``: float32 RGBA with the
-    accumulated alpha (premultiplied colour, the EXR convention, when rendered over black)."""
+def write_image(path: str | Path, pixels: Tensor | np.ndarray) -> None:
+    """Write an [H, W] or [H, W, C] image, its format from the extension: ``.png`` (8-bit; a fourth channel is
+    stored as given, unassociated alpha), ``.jpg``/``.jpeg`` (8-bit, quality 95, 4:4:4 chroma) or ``.exr`` (float32,
+    zip; RGBA is premultiplied by convention). 8-bit formats take uint8 pixels as they are and floats in [0, 1]
+    through :func:`~render_core.media.pixels.to_uint8`."""
     path = Path(path)
-    if path.suffix == ".exr":
-        pixels = rgb.detach().float().cpu().numpy()
-        if alpha is not None:
-            pixels = np.concatenate([pixels, alpha.detach().float().cpu().numpy()[..., None]], axis=-1)
-        spec = oiio.ImageSpec(pixels.shape[1], pixels.shape[0], pixels.shape[2], oiio.FLOAT)
-        spec.attribute("compression", "zip")
-        data = np.ascontiguousarray(pixels)
-    elif path.suffix == ".png":
-        data = np.ascontiguousarray(to_uint8(rgb))
-        spec = oiio.ImageSpec(data.shape[1], data.shape[0], 3, oiio.UINT8)
+    fmt = IMAGE_FORMATS.get(path.suffix.lower())
+    if fmt is None:
+        raise ValueError(f"unsupported image format {path.suffix!r}; use {', '.join(IMAGE_FORMATS)}")
+    if isinstance(pixels, Tensor):
+        pixels = pixels.detach().cpu().numpy()
+    if fmt == "exr":
+        data = np.ascontiguousarray(pixels, dtype=np.float32)
     else:
-        raise ValueError(f"unsupported image format {path.suffix!r}; use .png or .exr")
+        data = np.ascontiguousarray(pixels if pixels.dtype == np.uint8 else to_uint8(pixels))
+    if data.ndim == 2:
+        data = data[..., None]
+    spec = oiio.ImageSpec(data.shape[1], data.shape[0], data.shape[2], oiio.FLOAT if fmt == "exr" else oiio.UINT8)
+    if fmt == "png":
+        spec.attribute("oiio:UnassociatedAlpha", 1)
+    elif fmt == "jpeg":
+        spec.attribute("compression", "jpeg:95")
+        spec.attribute("jpeg:subsampling", "4:4:4")
+    else:
+        spec.attribute("compression", "zip")
     out = oiio.ImageOutput.create(str(path))
     if out is None:
         raise OSError(f"cannot create {path}: {oiio.geterror()}")

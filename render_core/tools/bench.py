@@ -24,7 +24,7 @@ import torch
 from ..avatar import Avatar
 from ..camera import Cameras, orbit
 from ..deform import Frame
-from ..media.files import to_uint8
+from ..media.pixels import to_rgba8
 from ..raster import check_backend, gsplat_backend, native
 from ..renderer import AvatarRenderer
 from .synth import synth_avatar
@@ -297,8 +297,7 @@ def bench_codecs(size: int = 512, frames: int = 30, gaussians: int = 20_000, see
     for i in range(0, frames, 8):
         chunk = Frame(seq.expression[i:i + 8], seq.joint_rotations[i:i + 8])
         out = renderer.render(chunk, cams, background=bg)
-        rgba = torch.cat([out.rgb, out.alpha[..., None]], -1)  # RGB over the background + alpha
-        images += [np.ascontiguousarray(to_uint8(frame)) for frame in rgba]
+        images += list(to_rgba8(out.rgb, out.alpha))  # RGB over the background + alpha
     report: dict = {"benchmark": "codecs", "size": size, "frames": frames, "gaussians": avatar.num_gaussians,
                     "backend": renderer.backend, "coverage": round(float((images[0][..., 3] > 127).mean()), 4),
                     "codecs": {}}

@@ -46,7 +46,8 @@ def render_drive(
                 video.write(result.rgb[0])
             else:
                 path = out / f"frame_{i:05d}.{fmt}"
-                write_image(path, result.rgb[0], result.alpha[0])
+                rgb, alpha = result.rgb[0], result.alpha[0]  # PNG: the colour over the background; EXR: RGBA
+                write_image(path, torch.cat([rgb, alpha[..., None]], -1) if fmt == "exr" else rgb)
                 files.append(str(path))
     finally:
         if video is not None:
