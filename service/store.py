@@ -12,6 +12,7 @@ import re
 import tempfile
 from pathlib import Path
 
+from render_core.atomic import publish
 from render_core.bundle import read_manifest, validate_bundle
 from render_core.errors import BundleError
 
@@ -74,8 +75,7 @@ class BundleStore:
                 manifest = validate_bundle(staged)
             except BundleError as e:
                 raise InvalidArgument(f"not a valid avatar bundle: {e}", field="bundle") from None
-            os.chmod(staged, 0o644)
-            os.replace(staged, target)
+            publish(staged, target)
             return manifest
         finally:
             staged.unlink(missing_ok=True)
