@@ -36,3 +36,14 @@ class FaceModelError(BlendsplatError):
 
 class DatasetError(BlendsplatError):
     """A tracked-video dataset is malformed: missing or unreadable frames, mismatched counts, bad tracking."""
+
+
+class CodecError(BlendsplatError):
+    """Stream codec settings are invalid: an unknown codec, a frame size, quality or frame rate out of range, or
+    a message a codec cannot decode as asked. ``field`` names the setting (``codec``, ``width``, ``height``,
+    ``quality``, ``fps``)."""
+
+
+class OptionError(BlendsplatError, ValueError):
+    """An option of a command or library call is invalid: a backend, precision, device, output format or a count
+    out of range. ``field`` names the option. Also a :class:`ValueError`, which these options raised before."""

@@ -15,7 +15,8 @@ avatar to the GPU) and renders batches of frames, reporting per-stage timings:
 from __future__ import annotations
 
 import time
-from dataclasses import replace
+from collections.abc import Iterable, Iterator
+from dataclasses import fields, replace
 
 import torch
 from torch import Tensor
@@ -71,6 +72,21 @@ class DeviceAvatar:
                          sh=rows[4].reshape(b, n, *self.sh_shape))
 
 
+def _tensors(avatar: Avatar) -> Iterator[Tensor]:
+    """Every tensor an avatar holds (its Gaussians' and the rest)."""
+    for f in fields(avatar):
+        value = getattr(avatar, f.name)
+        if isinstance(value, Tensor):
+            yield value
+        elif isinstance(value, Gaussians):
+            yield from value.tensors().values()
+
+
+def _storages(tensors: Iterable[Tensor]) -> dict[tuple[str, int], int]:
+    """The distinct memory behind ``tensors`` (views and shared tensors once): (device, address) -> bytes."""
+    return {(str(t.device), t.untyped_storage().data_ptr()): t.untyped_storage().nbytes() for t in tensors}
+
+
 class _Clock:
     """Stage marks: CUDA events on a GPU (one synchronize when read), wall-clock time elsewhere."""
 
@@ -120,6 +136,21 @@ class AvatarRenderer:
     def stats(self) -> native.PackStats | None:
         """What the native packing stored (None for the reference backend)."""
         return self.native.stats if self.native is not None else None
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes this renderer holds for its avatar, on the host or the device: the native backend's packed arrays,
+        the cuda backend's device-resident avatar (the packed blendshape matrix and the float32 tensors skinning
+        reads, in GPU memory), the reference backend's float32 copy of an fp16 avatar. Memory shared with the
+        avatar it was given is not counted: that avatar is the caller's (0 for the reference backend on an fp32
+        avatar, which renders the avatar itself)."""
+        held = self.native.nbytes if self.native is not None else 0
+        own = _storages(_tensors(self._compute_avatar))
+        if self.device_avatar is not None:
+            dev = self.device_avatar
+            own |= _storages([dev.base, dev.deltas, *_tensors(dev.avatar)])
+        given = _storages(_tensors(self.avatar))
+        return held + sum(n for key, n in own.items() if key not in given)
 
     def render(self, frame: Frame, cameras: Cameras, background: Tensor | None = None) -> RasterOutput:
         """B frames seen by B cameras (or one camera for all); RGB, alpha, depth and ``timings`` in ms."""

@@ -1,7 +1,9 @@
 """Loaded avatars, shared by every session of this process: LRU under a memory budget.
 
-An entry is a bundle read from the store and packed for the renderer. Sessions pin the entries they use; only
-unpinned entries are evicted. Concurrent requests for one avatar share a single load.
+An entry is a bundle read from the store and packed for the renderer; it counts as the file's bytes plus
+:attr:`~render_core.renderer.AvatarRenderer.nbytes` (the native packing, or the cuda backend's GPU copy). Sessions
+pin the entries they use; only unpinned entries are evicted. Concurrent requests for one avatar share a single
+load.
 """
 
 from __future__ import annotations
@@ -34,11 +36,6 @@ class Loaded:
     memory_bytes: int
     pins: int = 0
     loaded_at: float = field(default_factory=time.time)
-
-
-def _memory_bytes(renderer: AvatarRenderer, file_bytes: int) -> int:
-    packed = getattr(renderer.native, "_arrays", None) or {}
-    return file_bytes + sum(a.nbytes for a in packed.values())
 
 
 class AvatarCache:
@@ -111,8 +108,9 @@ class AvatarCache:
                                      field="avatar_id") from None
         renderer = AvatarRenderer(avatar, self.backend, threads=self.threads)
         file_bytes = path.stat().st_size
+        # The avatar as read (about the file's size) plus what the renderer holds for it, host or device.
         return Loaded(avatar_id, avatar, renderer, manifest.get("digest", ""), file_bytes,
-                      _memory_bytes(renderer, file_bytes))
+                      file_bytes + renderer.nbytes)
 
     def _make_room(self, need: int, for_id: str) -> None:
         if need > self.budget:

@@ -9,8 +9,10 @@
 - Draining (SIGTERM): new streams are refused, poses already received are rendered and sent, then every stream
   ends with an UNAVAILABLE status.
 
-Transports only frame messages: they pass ``StreamRequest`` messages to :meth:`Session.handle` and forward what
-:meth:`Session.responses` yields.
+Transports only frame messages, and call nothing but the engine: they pass ``StreamRequest`` messages to
+:meth:`Session.handle` and forward what :meth:`Session.responses` yields; avatars are listed, described, loaded,
+unloaded and uploaded through :meth:`Engine.list_avatars`, :meth:`Engine.avatar_info`, :meth:`Engine.load`,
+:meth:`Engine.unload` and :meth:`Engine.replace`. The cache and the bundle store are the engine's own.
 """
 
 from __future__ import annotations
@@ -21,15 +23,17 @@ import os
 import time
 import uuid
 from collections import deque
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterable, AsyncIterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import torch
 
 from blendsplat.v1 import render_pb2 as pb
+from render_core.avatar import Avatar
 from render_core.camera import Cameras
 from render_core.deform import Frame
+from render_core.errors import CodecError
 from render_core.media.codecs import Encoder, make_encoder
 from render_core.media.pixels import to_rgba8
 
@@ -57,6 +61,19 @@ class Job:
     received: float = field(default_factory=time.perf_counter)
     started: float = 0.0
 
+    @classmethod
+    def build(cls, avatar: Avatar, msg: pb.FrameParams, order: list[str], out: params.Output,
+              camera: Cameras | None = None, background: torch.Tensor | None = None) -> Job:
+        """The job of one FrameParams message, validated (typed errors naming the field): its camera, else
+        ``camera``, else the avatar's default at the output size; its background, else ``background``, else
+        black; ``order`` maps positional coefficients to names."""
+        return cls(
+            frame=params.frame(avatar, msg, order),
+            camera=params.camera(avatar, msg.camera if msg.HasField("camera") else None, out, camera),
+            background=params.background(msg.background if msg.HasField("background") else None, background),
+            index=msg.index, client_time_us=msg.client_time_us,
+        )
+
 
 @dataclass
 class Rendered:
@@ -79,8 +96,13 @@ class Session:
         self.order = params.expression_order(avatar, list(config.expression_names))
         self.camera = params.camera(avatar, config.camera if config.HasField("camera") else None, self.out)
         self.background = params.background(config.background if config.HasField("background") else None)
-        self.encoder: Encoder = make_encoder(self.out.codec, self.out.width, self.out.height, config.quality,
-                                             config.fps_hint or 30.0)
+        try:
+            self.encoder: Encoder = make_encoder(self.out.codec, self.out.width, self.out.height, config.quality,
+                                                 config.fps_hint or 30.0)
+        except CodecError as e:
+            if e.field != "fps":
+                raise
+            raise CodecError(e.detail, field="fps_hint") from None  # the name the client sent it under
         self.pending: Job | None = None
         self.unacked: deque[int] = deque()  # indices rendering or sent, not yet acknowledged
         self.rendering = 0
@@ -121,13 +143,7 @@ class Session:
     def _submit(self, msg: pb.FrameParams) -> None:
         if self.engine.frames_closed:
             raise Unavailable("the server is shutting down; no new frames are taken")
-        avatar = self.entry.avatar
-        job = Job(
-            frame=params.frame(avatar, msg, self.order),
-            camera=params.camera(avatar, msg.camera if msg.HasField("camera") else None, self.out, self.camera),
-            background=params.background(msg.background if msg.HasField("background") else None, self.background),
-            index=msg.index, client_time_us=msg.client_time_us,
-        )
+        job = Job.build(self.entry.avatar, msg, self.order, self.out, self.camera, self.background)
         if self.pending is not None:
             self._drop()
         self.pending = job
@@ -227,9 +243,14 @@ class Engine:
         self.store.ensure()
         self._scheduler = asyncio.create_task(self._schedule(), name="render-scheduler")
 
+    def readiness(self) -> dict[str, bool]:
+        """What readiness waits for, check by check."""
+        return {"settings": True, "bundle_store": self.store.reachable(), "warm_up": self.warmed_up,
+                "not_draining": not self.draining}
+
     @property
     def ready(self) -> bool:
-        return self.warmed_up and not self.draining and self.store.reachable()
+        return all(self.readiness().values())
 
     async def warm_up(self, avatar_id: str | None) -> None:
         """Render one frame (of ``avatar_id``, or of a tiny built-in avatar) so the first client waits for none
@@ -244,7 +265,7 @@ class Engine:
             avatar = synth_avatar(gaussians=256, blendshapes=4)
             entry = Loaded("warm-up", avatar, AvatarRenderer(avatar, self.settings.backend), "", 0, 0)
         out = params.output(size, size, pb.CODEC_JPEG, 0, max(size, self.settings.max_size))
-        job = Job(Frame.neutral(entry.avatar), params.camera(entry.avatar, None, out), torch.zeros(3), 0, 0)
+        job = Job.build(entry.avatar, pb.FrameParams(), list(entry.avatar.expression_names), out)
         encoder = make_encoder(out.codec, out.width, out.height)
         await asyncio.get_running_loop().run_in_executor(self._pool, _render, entry, [job], [encoder])
         self.warmed_up = True
@@ -309,13 +330,11 @@ class Engine:
             raise Unavailable("the server is shutting down; connect to another replica")
         entry = await self.cache.acquire(check_id(request.avatar_id))
         try:
-            avatar, s = entry.avatar, self.settings
-            out = params.output(request.width, request.height, request.codec, request.quality, s.max_size)
-            msg = request.frame
-            job = Job(params.frame(avatar, msg, params.expression_order(avatar, list(request.expression_names))),
-                      params.camera(avatar, msg.camera if msg.HasField("camera") else None, out),
-                      params.background(msg.background if msg.HasField("background") else None),
-                      msg.index, msg.client_time_us)
+            avatar = entry.avatar
+            out = params.output(request.width, request.height, request.codec, request.quality,
+                                self.settings.max_size)
+            job = Job.build(avatar, request.frame, params.expression_order(avatar, list(request.expression_names)),
+                            out)
             encoder = make_encoder(out.codec, out.width, out.height, request.quality)
             try:
                 (result,) = await asyncio.get_running_loop().run_in_executor(self._pool, _render, entry, [job],
@@ -369,6 +388,45 @@ class Engine:
             t = r.timings
             for stage in ("queue", "blend", "lbs", "raster", "encode", "total"):
                 m.stage.labels(stage).observe(getattr(t, f"{stage}_ms") / 1e3)
+
+    # ---------------------------------------------------------------------------------------------- avatars
+    async def load(self, avatar_id: str) -> pb.AvatarInfo:
+        """Load an avatar into this replica's cache (NotFound; FailedPrecondition for a broken bundle)."""
+        await self.cache.load(check_id(avatar_id))
+        return self.avatar_info(avatar_id)
+
+    def unload(self, avatar_id: str) -> pb.AvatarInfo:
+        """Drop an avatar from this replica's cache; the bundle stays, and streams using it keep it until they end.
+        NotFound when the store has no such avatar."""
+        info = self.avatar_info(avatar_id)
+        self.cache.unload(avatar_id)
+        info.loaded, info.memory_bytes = False, 0
+        return info
+
+    async def replace(self, avatar_id: str, chunks: AsyncIterable[bytes], declared: int | None = None
+                      ) -> pb.AvatarInfo:
+        """Create or replace an avatar's bundle from an upload's bytes (``declared``: its announced size, when
+        known). The upload is staged and fully validated before it replaces anything: an invalid or oversize one
+        (InvalidArgument naming ``bundle``) leaves the store unchanged. The cached copy is dropped, so new
+        sessions get the new bundle; running ones keep theirs."""
+        check_id(avatar_id)
+        limit = self.settings.max_upload_bytes
+        if declared is not None and declared > limit:
+            raise InvalidArgument(f"the upload is {declared} bytes; the limit is {limit}", field="bundle")
+        fd, staged = self.store.staging()
+        try:
+            size = 0
+            with os.fdopen(fd, "wb") as f:
+                async for chunk in chunks:
+                    size += len(chunk)
+                    if size > limit:
+                        raise InvalidArgument(f"the upload exceeds the limit of {limit} bytes", field="bundle")
+                    f.write(chunk)
+            await asyncio.to_thread(self.store.commit, staged, avatar_id)
+        finally:
+            staged.unlink(missing_ok=True)
+        self.cache.unload(avatar_id)
+        return self.avatar_info(avatar_id)
 
     def avatar_info(self, avatar_id: str) -> pb.AvatarInfo:
         entry = self.cache.get(avatar_id)

@@ -47,7 +47,8 @@ _HTTP = {
 
 def to_status(exc: BaseException, frame_index: int = 0) -> pb.Status:
     """Any exception as a wire status: typed errors keep their code and field (the message then leaves the field
-    out); others are INTERNAL."""
+    out); others are INTERNAL. render_core's typed errors (:class:`~render_core.errors.BlendsplatError`: a frame,
+    camera, codec setting, bundle or option the client sent) are INVALID_ARGUMENT (HTTP 422)."""
     if isinstance(exc, ServiceError | BlendsplatError):
         code = exc.code if isinstance(exc, ServiceError) else pb.INVALID_ARGUMENT  # render_core: the client's input
         return pb.Status(code=code, message=exc.detail, field=exc.field or "", frame_index=frame_index)

@@ -1,14 +1,18 @@
 """The gRPC transport (grpc.aio): blendsplat.v1.RenderService, grpc.health.v1 and server reflection.
 
-A thin adapter: every call goes to the :class:`~service.engine.Engine`; errors become status codes through
-:func:`service.errors.to_status` (INVALID_ARGUMENT naming the field, NOT_FOUND, RESOURCE_EXHAUSTED, UNAVAILABLE).
+A thin adapter: every call goes to the :class:`~service.engine.Engine`; every RPC's errors become status codes
+through :func:`status_on_error` and the one mapping in :mod:`service.errors` (INVALID_ARGUMENT naming the field,
+NOT_FOUND, RESOURCE_EXHAUSTED, FAILED_PRECONDITION, UNAVAILABLE; anything else INTERNAL, logged).
 """
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import functools
 import logging
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Awaitable, Callable
+from typing import TypeVar
 
 import grpc
 from grpc_health.v1 import health, health_pb2, health_pb2_grpc
@@ -18,18 +22,36 @@ from blendsplat.v1 import render_pb2 as pb
 from blendsplat.v1 import render_pb2_grpc as pb_grpc
 
 from .engine import Engine
-from .errors import grpc_code, to_status
+from .errors import InvalidArgument, grpc_code, to_status
 
 log = logging.getLogger(__name__)
 SERVICE_NAME = pb.DESCRIPTOR.services_by_name["RenderService"].full_name
+Reply = TypeVar("Reply")
 
 
-async def _abort(context: grpc.aio.ServicerContext, exc: BaseException) -> None:
-    status = to_status(exc)
-    if status.code == pb.INTERNAL:
-        log.exception("internal error", exc_info=exc)
-    details = f"{status.field}: {status.message}" if status.field else status.message  # no field slot in gRPC
-    await context.abort(grpc_code(status.code), details)
+@contextlib.asynccontextmanager
+async def status_on_error(context: grpc.aio.ServicerContext) -> AsyncIterator[None]:
+    """End the call with the status of any error raised inside: its code from :func:`service.errors.to_status`,
+    its details ``"field: message"`` (gRPC has no field slot). Errors that are not typed are INTERNAL, logged."""
+    try:
+        yield
+    except grpc.aio.AbortError:
+        raise  # already a status
+    except Exception as exc:  # noqa: BLE001 - every failure becomes a status
+        status = to_status(exc)
+        if status.code == pb.INTERNAL:
+            log.exception("internal error", exc_info=exc)
+        details = f"{status.field}: {status.message}" if status.field else status.message
+        await context.abort(grpc_code(status.code), details)
+
+
+def unary(method: Callable[..., Awaitable[Reply]]) -> Callable[..., Awaitable[Reply]]:
+    """A unary RPC whose errors end the call through :func:`status_on_error`."""
+    @functools.wraps(method)
+    async def rpc(self, request, context: grpc.aio.ServicerContext) -> Reply:
+        async with status_on_error(context):
+            return await method(self, request, context)
+    return rpc
 
 
 class RenderService(pb_grpc.RenderServiceServicer):
@@ -43,12 +65,10 @@ class RenderService(pb_grpc.RenderServiceServicer):
             first = await anext(requests)
         except StopAsyncIteration:
             return
-        if first.WhichOneof("msg") != "open":
-            await context.abort(grpc.StatusCode.INVALID_ARGUMENT, "open: the first message must open a session")
-        try:
+        async with status_on_error(context):
+            if first.WhichOneof("msg") != "open":
+                raise InvalidArgument("the first message must open a session", field="open")
             session = await self.engine.open(first.open, "grpc")
-        except Exception as e:  # noqa: BLE001 - mapped to a status code
-            await _abort(context, e)
 
         async def pump() -> None:
             try:
@@ -70,36 +90,25 @@ class RenderService(pb_grpc.RenderServiceServicer):
             reader.cancel()
             self.engine.close_session(session)
 
-    async def Render(self, request: pb.RenderRequest, context: grpc.aio.ServicerContext) -> pb.RenderResponse:
-        try:
-            return pb.RenderResponse(frame=await self.engine.render_once(request))
-        except Exception as e:  # noqa: BLE001
-            await _abort(context, e)
+    @unary
+    async def Render(self, request: pb.RenderRequest, context) -> pb.RenderResponse:
+        return pb.RenderResponse(frame=await self.engine.render_once(request))
 
-    async def ListAvatars(self, request, context) -> pb.ListAvatarsResponse:
+    @unary
+    async def ListAvatars(self, request: pb.ListAvatarsRequest, context) -> pb.ListAvatarsResponse:
         return pb.ListAvatarsResponse(avatars=self.engine.list_avatars())
 
+    @unary
     async def GetAvatar(self, request: pb.GetAvatarRequest, context) -> pb.AvatarInfo:
-        try:
-            return self.engine.avatar_info(request.id)
-        except Exception as e:  # noqa: BLE001
-            await _abort(context, e)
+        return self.engine.avatar_info(request.id)
 
+    @unary
     async def LoadAvatar(self, request: pb.LoadAvatarRequest, context) -> pb.AvatarInfo:
-        try:
-            await self.engine.cache.load(request.id)
-            return self.engine.avatar_info(request.id)
-        except Exception as e:  # noqa: BLE001
-            await _abort(context, e)
+        return await self.engine.load(request.id)
 
+    @unary
     async def UnloadAvatar(self, request: pb.UnloadAvatarRequest, context) -> pb.AvatarInfo:
-        try:
-            info = self.engine.avatar_info(request.id)
-            self.engine.cache.unload(request.id)
-            info.loaded, info.memory_bytes = False, 0
-            return info
-        except Exception as e:  # noqa: BLE001
-            await _abort(context, e)
+        return self.engine.unload(request.id)
 
 
 class GrpcServer:

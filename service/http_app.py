@@ -9,7 +9,6 @@ import asyncio
 import contextlib
 import json
 import logging
-import os
 from pathlib import Path
 from typing import Any
 
@@ -24,7 +23,6 @@ from render_core.errors import BlendsplatError
 
 from .engine import Engine
 from .errors import InvalidArgument, ServiceError, http_status, to_status
-from .store import check_id
 
 log = logging.getLogger(__name__)
 STATIC = Path(__file__).parent / "static"
@@ -67,42 +65,19 @@ async def get_avatar(avatar_id: str, request: Request) -> dict:
              description="The body is the bundle file (application/octet-stream). It is fully validated before it "
                          "replaces anything; an invalid or oversize upload leaves the store unchanged.")
 async def put_avatar(avatar_id: str, request: Request) -> dict:
-    engine = _engine(request)
-    check_id(avatar_id, "avatar_id")
-    limit = engine.settings.max_upload_bytes
-    declared = request.headers.get("content-length")
-    if declared is not None and declared.isdigit() and int(declared) > limit:
-        raise InvalidArgument(f"the upload is {declared} bytes; the limit is {limit}", field="bundle")
-    fd, staged = engine.store.staging()
-    try:
-        size = 0
-        with os.fdopen(fd, "wb") as f:
-            async for chunk in request.stream():
-                size += len(chunk)
-                if size > limit:
-                    raise InvalidArgument(f"the upload exceeds the limit of {limit} bytes", field="bundle")
-                f.write(chunk)
-        await asyncio.to_thread(engine.store.commit, staged, avatar_id)
-    finally:
-        staged.unlink(missing_ok=True)
-    engine.cache.unload(avatar_id)  # new sessions get the new bundle; running ones keep theirs
-    return as_json(engine.avatar_info(avatar_id))
+    declared = request.headers.get("content-length", "")  # a plain number, else the stream's size decides
+    size = int(declared) if declared.isascii() and declared.isdigit() and len(declared) <= 18 else None
+    return as_json(await _engine(request).replace(avatar_id, request.stream(), size))
 
 
 @avatars.post("/{avatar_id}/load", summary="Load an avatar into this replica's cache")
 async def load_avatar(avatar_id: str, request: Request) -> dict:
-    engine = _engine(request)
-    await engine.cache.load(check_id(avatar_id))
-    return as_json(engine.avatar_info(avatar_id))
+    return as_json(await _engine(request).load(avatar_id))
 
 
 @avatars.post("/{avatar_id}/unload", summary="Drop an avatar from this replica's cache (the bundle stays)")
 async def unload_avatar(avatar_id: str, request: Request) -> dict:
-    engine = _engine(request)
-    info = engine.avatar_info(avatar_id)
-    engine.cache.unload(avatar_id)
-    info.loaded, info.memory_bytes = False, 0
-    return as_json(info)
+    return as_json(_engine(request).unload(avatar_id))
 
 
 # --------------------------------------------------------------------------------------------------- rendering
@@ -209,9 +184,7 @@ async def healthz() -> dict:
 
 @ops.get("/readyz", summary="Readiness: settings valid, bundle store reachable, warm-up frame rendered, not draining")
 async def readyz(request: Request) -> JSONResponse:
-    engine = _engine(request)
-    checks = {"settings": True, "bundle_store": engine.store.reachable(), "warm_up": engine.warmed_up,
-              "not_draining": not engine.draining}
+    checks = _engine(request).readiness()
     ready = all(checks.values())
     return JSONResponse({"ready": ready, "checks": checks}, status_code=200 if ready else 503)
 

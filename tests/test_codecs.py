@@ -6,7 +6,8 @@ import numpy as np
 import OpenImageIO as oiio
 import pytest
 
-from render_core.errors import FrameError, ShapeError
+from render_core.errors import BlendsplatError, CodecError, FrameError, ShapeError
+from render_core.evaluation.metrics import psnr  # uint8 images: over 0..255
 from render_core.media.codecs import CODECS, H264Decoder, decode_image, h264_crf, make_encoder
 from render_core.tools.cli import main
 
@@ -22,11 +23,6 @@ def smooth(h, w, t=0.0):
 
 def noise(h, w, seed=0):
     return np.random.default_rng(seed).integers(0, 256, (h, w, 4), dtype=np.uint8)
-
-
-def psnr(a, b):
-    mse = np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2)
-    return 10 * np.log10(255.0**2 / max(mse, 1e-12))
 
 
 def nal_types(data):
@@ -158,9 +154,11 @@ def test_non_contiguous_input_is_copied(codec):
 ])
 def test_bad_arguments_name_the_field(kwargs, field):
     args = {"codec": "jpeg", "width": 16, "height": 16, **kwargs}
-    with pytest.raises(FrameError) as e:
+    with pytest.raises(CodecError) as e:
         make_encoder(**args)
-    assert e.value.field == field
+    assert e.value.field == field and str(e.value).startswith(f"{field}: ")
+    # A codec setting is not a frame parameter: callers that map FrameError to a pose problem do not see it.
+    assert isinstance(e.value, BlendsplatError) and not isinstance(e.value, FrameError)
 
 
 @pytest.mark.parametrize("codec", CODECS)
@@ -185,9 +183,13 @@ def test_bad_messages():
     with pytest.raises(ShapeError) as e:
         decode_image("png", make_encoder("png", 4, 4).encode(noise(4, 4)), 4, 5)
     assert e.value.field == "data"
-    with pytest.raises(FrameError) as e:
+    with pytest.raises(CodecError) as e:
         decode_image("h264", b"", 4, 4)
     assert e.value.field == "codec"
+    for args, field in ((("webp", b"", 4, 4), "codec"), (("png", b"", 0, 4), "width")):
+        with pytest.raises(CodecError) as e:
+            decode_image(*args)
+        assert e.value.field == field
 
 
 def test_bench_codecs_json(capsys):

@@ -359,6 +359,140 @@ def test_unary_grpc_calls(stub, reference):
     assert e.value.code() == grpc.StatusCode.INVALID_ARGUMENT and "eyelids" in e.value.details()
 
 
+TYPED_ERRORS = [  # (error raised by the engine, gRPC code, HTTP status): the one mapping in service.errors
+    ("InvalidArgument", grpc.StatusCode.INVALID_ARGUMENT, 422),
+    ("NotFound", grpc.StatusCode.NOT_FOUND, 404),
+    ("ResourceExhausted", grpc.StatusCode.RESOURCE_EXHAUSTED, 429),
+    ("FailedPrecondition", grpc.StatusCode.FAILED_PRECONDITION, 409),
+    ("Unavailable", grpc.StatusCode.UNAVAILABLE, 503),
+    ("CodecError", grpc.StatusCode.INVALID_ARGUMENT, 422),
+    ("FrameError", grpc.StatusCode.INVALID_ARGUMENT, 422),
+    ("OptionError", grpc.StatusCode.INVALID_ARGUMENT, 422),
+]
+
+
+def _error(name: str) -> Exception:
+    import render_core.errors
+    import service.errors
+
+    cls = getattr(service.errors, name, None) or getattr(render_core.errors, name)
+    return cls("made up for the test", field="some_field")
+
+
+@pytest.mark.parametrize("name,code,http_status", TYPED_ERRORS, ids=[e[0] for e in TYPED_ERRORS])
+def test_every_unary_rpc_maps_errors_to_their_status(live_server, stub, monkeypatch, name, code, http_status):
+    """One helper turns an engine error into the call's status, for every RPC (ListAvatars included)."""
+    engine = live_server.engine
+
+    def fail(*args, **kwargs):
+        raise _error(name)
+
+    async def fail_async(*args, **kwargs):
+        raise _error(name)
+
+    for method in ("list_avatars", "avatar_info", "unload"):
+        monkeypatch.setattr(engine, method, fail)
+    for method in ("load", "render_once", "open"):
+        monkeypatch.setattr(engine, method, fail_async)
+    calls = [
+        lambda: stub.ListAvatars(pb.ListAvatarsRequest()),
+        lambda: stub.GetAvatar(pb.GetAvatarRequest(id="demo")),
+        lambda: stub.LoadAvatar(pb.LoadAvatarRequest(id="demo")),
+        lambda: stub.UnloadAvatar(pb.UnloadAvatarRequest(id="demo")),
+        lambda: stub.Render(pb.RenderRequest(avatar_id="demo")),
+        lambda: GrpcStream(stub, avatar_id="demo").next(),
+    ]
+    for call in calls:
+        with pytest.raises(grpc.RpcError) as e:
+            call()
+        assert e.value.code() == code
+        assert e.value.details() == "some_field: made up for the test"
+    # The same errors over HTTP: the same table, as HTTP statuses.
+    http = httpx.Client(base_url=live_server.http_url, timeout=60)
+    for r in (http.get("/v1/avatars"), http.get("/v1/avatars/demo"), http.post("/v1/avatars/demo/load"),
+              http.post("/v1/avatars/demo/unload"), http.post("/v1/render", json={"avatarId": "demo"})):
+        assert r.status_code == http_status, r.text
+        assert r.json()["error"]["field"] == "some_field"
+
+
+def test_untyped_errors_are_internal_without_details(live_server, stub, monkeypatch):
+    def fail(*args, **kwargs):
+        raise KeyError("secret internals")
+
+    monkeypatch.setattr(live_server.engine, "list_avatars", fail)
+    with pytest.raises(grpc.RpcError) as e:
+        stub.ListAvatars(pb.ListAvatarsRequest())
+    assert e.value.code() == grpc.StatusCode.INTERNAL
+    assert e.value.details() == "internal error (KeyError)"
+
+
+def test_codec_settings_are_invalid_argument_naming_the_field(live_server, stub):
+    """Codec settings fail as render_core's CodecError, which both transports map to INVALID_ARGUMENT / 422."""
+    with pytest.raises(grpc.RpcError) as e:
+        stub.Render(pb.RenderRequest(avatar_id="demo", width=SIZE, quality=101))
+    assert e.value.code() == grpc.StatusCode.INVALID_ARGUMENT
+    assert e.value.details().startswith("quality: must be an integer in [0, 100]"), e.value.details()
+    r = httpx.post(live_server.http_url + "/v1/render", json={"avatarId": "demo", "width": SIZE, "quality": 101},
+                   timeout=60)
+    assert r.status_code == 422 and r.json()["error"]["field"] == "quality"
+    stream = GrpcStream(stub, avatar_id="demo", width=SIZE, codec=pb.CODEC_H264, fps_hint=-5.0)
+    with pytest.raises(grpc.RpcError) as e:
+        stream.next()
+    assert e.value.code() == grpc.StatusCode.INVALID_ARGUMENT and e.value.details().startswith("fps_hint: ")
+
+
+def test_transports_call_only_the_engine():
+    """The gRPC and HTTP adapters reach the avatar cache and the bundle store only through Engine methods."""
+    import ast
+    import inspect
+
+    import service.grpc_server
+    import service.http_app
+    from service.engine import Engine
+
+    public = {name for name in dir(Engine) if not name.startswith("_")}
+    for module in (service.grpc_server, service.http_app):
+        tree = ast.parse(inspect.getsource(module))
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom):
+                assert node.module not in ("cache", "store", "service.cache", "service.store"), module.__name__
+            if isinstance(node, ast.Attribute):
+                assert node.attr not in ("cache", "store"), f"{module.__name__}:{node.lineno} uses .{node.attr}"
+    for method in ("load", "unload", "replace", "list_avatars", "avatar_info", "readiness", "render_once", "open"):
+        assert method in public, method
+
+
+def test_engine_load_unload_replace(live_server, tmp_path):
+    """The engine's avatar calls: replacing a loaded avatar drops the cached copy, so the next load serves the
+    new bundle; unloading keeps the bundle."""
+    engine, http = live_server.engine, httpx.Client(base_url=live_server.http_url, timeout=60)
+    data = {}
+    for n in (300, 200):
+        write_bundle(synth_avatar(gaussians=n, blendshapes=3, seed=n), tmp_path / f"{n}.bundle", precision="fp16")
+        data[n] = (tmp_path / f"{n}.bundle").read_bytes()
+
+    async def chunks(blob: bytes):
+        for i in range(0, len(blob), 4096):
+            yield blob[i:i + 4096]
+
+    try:
+        info = live_server.call(engine.replace("swap", chunks(data[300])))
+        assert (info.gaussians, info.loaded) == (300 + 300 // 8, False)
+        loaded = live_server.call(engine.load("swap"))
+        assert loaded.loaded and loaded.memory_bytes > loaded.file_bytes
+        # Over HTTP, replacing it while it is loaded: the new bundle is what the next load gets.
+        r = http.put("/v1/avatars/swap", content=data[200])
+        assert r.status_code == 201 and r.json()["loaded"] is False and r.json()["gaussians"] == str(200 + 25)
+        assert live_server.call(engine.load("swap")).gaussians == 200 + 25
+        assert engine.unload("swap").loaded is False and engine.avatar_info("swap").loaded is False
+        with pytest.raises(Exception, match="bundle: not a valid avatar bundle"):
+            live_server.call(engine.replace("swap", chunks(b"hello")))
+        assert engine.avatar_info("swap").gaussians == 200 + 25  # a failed upload left the store as it was
+    finally:
+        (engine.settings.bundle_dir / "swap.bundle").unlink(missing_ok=True)
+        engine.cache.unload("swap")
+
+
 def test_grpc_health_and_reflection(live_server):
     from grpc_reflection.v1alpha import reflection_pb2, reflection_pb2_grpc
 
@@ -631,5 +765,29 @@ def test_avatar_cache_is_lru_under_its_budget_and_keeps_avatars_in_use(tmp_path)
         fresh = AvatarCache(store, 1 << 40, Metrics())
         x, y = await asyncio.gather(fresh.load("c"), fresh.load("c"))
         assert x is y and fresh.metrics.cache_misses._value.get() == 1
+        # An entry counts the file plus what its renderer holds (the native packing here).
+        assert x.memory_bytes == x.file_bytes + x.renderer.nbytes and x.renderer.nbytes > 0
 
     asyncio.run(scenario())
+
+
+def test_avatar_cache_counts_the_cuda_backends_device_memory(tmp_path, monkeypatch):
+    """A cuda avatar's entry counts its GPU copy (the cuda path emulated on the CPU), not just the file."""
+    import asyncio
+
+    pytest.importorskip("gsplat", reason="gsplat is not installed")
+    import gsplat_cpu
+
+    from service.cache import AvatarCache
+    from service.metrics import Metrics
+    from service.store import BundleStore
+
+    gsplat_cpu.emulate_cuda_backend(monkeypatch)
+    store = BundleStore(tmp_path)
+    store.ensure()
+    write_bundle(synth_avatar(gaussians=400, blendshapes=3, seed=1), store.path("a"), precision="fp16")
+    entry = asyncio.run(AvatarCache(store, 1 << 40, Metrics(), backend="cuda").load("a"))
+    assert entry.renderer.backend == "cuda"
+    device = entry.renderer.device_avatar
+    assert entry.memory_bytes == entry.file_bytes + entry.renderer.nbytes
+    assert entry.renderer.nbytes >= device.nbytes > 0

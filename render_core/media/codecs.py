@@ -30,7 +30,7 @@ from fractions import Fraction
 
 import numpy as np
 
-from ..errors import FrameError, ShapeError
+from ..errors import CodecError, ShapeError
 
 CODECS = ("jpeg", "png", "raw_rgba", "h264")
 MEDIA_TYPES = {"jpeg": "image/jpeg", "png": "image/png", "raw_rgba": "application/octet-stream",
@@ -42,13 +42,13 @@ MAX_SIZE = 16384
 
 def _check_codec(codec: str) -> None:
     if codec not in CODECS:
-        raise FrameError(f"unknown codec {codec!r}; use one of {', '.join(CODECS)}", field="codec")
+        raise CodecError(f"unknown codec {codec!r}; use one of {', '.join(CODECS)}", field="codec")
 
 
 def _check_size(width: int, height: int) -> None:
     for name, value in (("width", width), ("height", height)):
         if isinstance(value, bool) or not isinstance(value, int | np.integer) or not 1 <= value <= MAX_SIZE:
-            raise FrameError(f"must be an integer in [1, {MAX_SIZE}], got {value!r}", field=name)
+            raise CodecError(f"must be an integer in [1, {MAX_SIZE}], got {value!r}", field=name)
 
 
 class Encoder:
@@ -175,14 +175,14 @@ class H264Encoder(Encoder):
 def make_encoder(codec: str, width: int, height: int, quality: int = 0, fps: float = 30.0) -> Encoder:
     """An encoder of ``codec`` for frames of ``width`` x ``height``; ``quality`` 0 is the codec's default, else
     1-100 (ignored by the lossless codecs); ``fps`` sets the H.264 timing and keyframe interval. Bad arguments
-    raise :class:`~render_core.errors.FrameError` naming the field."""
+    raise :class:`~render_core.errors.CodecError` naming the field."""
     _check_codec(codec)
     _check_size(width, height)
     if isinstance(quality, bool) or not isinstance(quality, int | np.integer) or not 0 <= quality <= 100:
-        raise FrameError(f"must be an integer in [0, 100] (0: the codec's default), got {quality!r}",
+        raise CodecError(f"must be an integer in [0, 100] (0: the codec's default), got {quality!r}",
                          field="quality")
     if isinstance(fps, bool) or not isinstance(fps, int | float) or not (math.isfinite(fps) and 0 < fps <= 1000):
-        raise FrameError(f"must be a number in (0, 1000], got {fps!r}", field="fps")
+        raise CodecError(f"must be a number in (0, 1000], got {fps!r}", field="fps")
     if codec == "h264":
         return H264Encoder(width, height, quality, fps)
     cls = {"jpeg": JpegEncoder, "png": PngEncoder, "raw_rgba": RawRgbaEncoder}[codec]
@@ -209,7 +209,7 @@ def decode_image(codec: str, data: bytes, width: int, height: int) -> np.ndarray
         if image is None:
             raise ShapeError(f"expected {size} bytes for {width}x{height} RGBA, got {len(data)}", field="data")
     else:
-        raise FrameError("H.264 is a stream: decode it with H264Decoder", field="codec")
+        raise CodecError("H.264 is a stream: decode it with H264Decoder", field="codec")
     if image is None or image.shape[:2] != (height, width):
         got = "no image" if image is None else f"{image.shape[1]}x{image.shape[0]}"
         raise ShapeError(f"expected a {width}x{height} image, got {got}", field="data")

@@ -322,6 +322,11 @@ class NativeAvatar:
             precision=precision,
         )
 
+    @property
+    def nbytes(self) -> int:
+        """Host bytes of the packed arrays the pipeline reads (the handle holds them, not copies)."""
+        return sum(a.nbytes for a in self._arrays.values())
+
     def render(
         self,
         expression: Tensor,  # [B, K]

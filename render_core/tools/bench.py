@@ -24,6 +24,7 @@ import torch
 from ..avatar import Avatar
 from ..camera import Cameras, orbit
 from ..deform import Frame
+from ..errors import OptionError
 from ..media.pixels import to_rgba8
 from ..raster import check_backend, gsplat_backend, native
 from ..renderer import AvatarRenderer
@@ -86,6 +87,13 @@ def _time_frames(renderer: AvatarRenderer, cams: Cameras, frames: int, warmup: i
             "coverage": round(statistics.mean(covs), 4), "last_timings": timings}
 
 
+def _check_counts(minimum: int, **counts: int) -> None:
+    """OptionError naming the first count below ``minimum``."""
+    for name, value in counts.items():
+        if value < minimum:
+            raise OptionError(f"must be at least {minimum}, got {value}", field=name)
+
+
 def bench_render(
     backend: str | None = None,
     gaussians: int = 10_000,
@@ -105,9 +113,12 @@ def bench_render(
 
     ``precision`` is the blendshape storage: the synthetic avatar's ("fp32" or "fp16"), and for the cuda backend
     the storage on the GPU ("bf16" too, from an fp16 avatar)."""
+    _check_counts(1, size=size, streams=streams, frames=frames)
+    _check_counts(0, warmup=warmup, reference_frames=reference_frames, threads=threads)
     backend = check_backend(backend)  # before building the avatar: an unavailable backend fails at once
     if precision == "bf16" and backend != "cuda":
-        raise ValueError("bf16 blendshape storage is the cuda backend's only; use fp16 or fp32")
+        raise OptionError("bf16 blendshape storage is the cuda backend's only; use fp16 or fp32",
+                          field="precision")
     if avatar is None:
         stored = "fp16" if precision == "bf16" else precision
         avatar = synth_avatar(gaussians, blendshapes, seed=seed, sh_degree=sh_degree).with_precision(stored)
@@ -217,7 +228,9 @@ def bench_raster_backward(gaussians: int = 10_000, size: int = 256, frames: int 
     from ..raster import reference
 
     if device not in ("cpu", "cuda"):
-        raise ValueError(f"device must be 'cpu' or 'cuda', got {device!r}")
+        raise OptionError(f"device must be 'cpu' or 'cuda', got {device!r}", field="device")
+    _check_counts(1, size=size, frames=frames, batch=batch)
+    _check_counts(0, warmup=warmup, reference_frames=reference_frames, threads=threads)
     if device == "cuda":
         check_backend("cuda")
     avatar = synth_avatar(gaussians, 8, seed=seed, sh_degree=0)
@@ -288,6 +301,7 @@ def bench_codecs(size: int = 512, frames: int = 30, gaussians: int = 20_000, see
     fresh, so H.264 includes its opening IDR frame as a new stream would."""
     from ..media.codecs import CODECS, make_encoder
 
+    _check_counts(1, size=size, frames=frames)
     avatar = synth_avatar(gaussians, 50, seed=seed).with_precision("fp16")
     renderer = AvatarRenderer(avatar)
     cams = framed_camera(avatar, size)

@@ -19,6 +19,27 @@ def _emit(obj: dict) -> None:
     sys.stdout.flush()
 
 
+class _Bar:
+    """A tqdm bar on stderr for library functions that report ``progress(done, total)``."""
+
+    def __init__(self, desc: str, unit: str):
+        self.desc, self.unit, self.bar = desc, unit, None
+
+    def __call__(self, done: int, total: int) -> None:
+        if self.bar is None:
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=total, desc=self.desc, unit=self.unit, file=sys.stderr)
+        self.bar.update(done - self.bar.n)
+
+    def __enter__(self) -> _Bar:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
 def _background(text: str) -> tuple[float, float, float]:
     try:
         r, g, b = (float(v) for v in text.split(","))
@@ -91,8 +112,9 @@ def cmd_bundle_validate(args: argparse.Namespace) -> int:
 def cmd_render(args: argparse.Namespace) -> int:
     from .offline import render_bundle
 
-    summary = render_bundle(args.bundle, args.drive, args.out, size=args.size, fmt=args.format,
-                            backend=args.backend, background=args.background, fps=args.fps)
+    with _Bar("render", "frame") as bar:
+        summary = render_bundle(args.bundle, args.drive, args.out, size=args.size, fmt=args.format,
+                                backend=args.backend, background=args.background, fps=args.fps, progress=bar)
     log.info("rendered %d frames to %s", summary["frames"], summary["out"])
     _emit(summary)
     return 0
@@ -149,7 +171,8 @@ def cmd_bench_codecs(args: argparse.Namespace) -> int:
 def cmd_demo(args: argparse.Namespace) -> int:
     from .demo import run_demo
 
-    summary = run_demo(args.out, size=args.size, frames=args.frames, gaussians=args.gaussians)
+    with _Bar("render", "frame") as bar:
+        summary = run_demo(args.out, size=args.size, frames=args.frames, gaussians=args.gaussians, progress=bar)
     log.info("demo animation: %s", summary["video"])
     _emit(summary)
     return 0

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Callable
 from pathlib import Path
 
 from ..bundle import write_bundle
@@ -36,8 +37,10 @@ def demo_drive_lines(frames: int, expression_names: list[str]) -> list[dict]:
     return lines
 
 
-def run_demo(out_dir: str | Path, *, size: int = 256, frames: int = 60, gaussians: int = 10_000) -> dict:
-    """Write a synthetic bundle, a driving file and the rendered H.264 video into ``out_dir``."""
+def run_demo(out_dir: str | Path, *, size: int = 256, frames: int = 60, gaussians: int = 10_000,
+             progress: Callable[[int, int], None] | None = None) -> dict:
+    """Write a synthetic bundle, a driving file and the rendered H.264 video into ``out_dir``; ``progress(done,
+    total)`` after each rendered frame."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     avatar = synth_avatar(gaussians, 8, seed=7)
@@ -46,6 +49,7 @@ def run_demo(out_dir: str | Path, *, size: int = 256, frames: int = 60, gaussian
     drive = out / "demo.jsonl"
     drive.write_text("".join(json.dumps(line) + "\n" for line in demo_drive_lines(frames,
                                                                                   avatar.expression_names)))
-    summary = render_bundle(bundle, drive, out, size=size, fmt="mp4", background=(0.08, 0.09, 0.12))
+    summary = render_bundle(bundle, drive, out, size=size, fmt="mp4", background=(0.08, 0.09, 0.12),
+                            progress=progress)
     return {"video": summary["files"][0], "bundle": str(bundle), "drive": str(drive), "frames": frames,
             "size": size}

@@ -2,14 +2,15 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 import torch
-from tqdm import tqdm
 
 from ..avatar import Avatar
 from ..bundle import read_bundle
 from ..drive import read_drive_file
+from ..errors import OptionError
 from ..media.files import FORMATS, VideoWriter, write_image
 from ..renderer import AvatarRenderer
 
@@ -24,14 +25,15 @@ def render_drive(
     backend: str | None = None,
     background: tuple[float, float, float] = (0.0, 0.0, 0.0),
     fps: int = 30,
-    progress: bool = True,
+    progress: Callable[[int, int], None] | None = None,
 ) -> dict:
     """Render every line of ``drive_path`` for ``avatar`` into ``out_dir``; returns a summary (files, frames).
 
     The whole driving file is validated before the first frame renders, so a bad line costs nothing.
+    ``progress(done, total)`` is called after each frame (the command line draws its bar with it).
     """
     if fmt not in FORMATS:
-        raise ValueError(f"unknown format {fmt!r}; use one of {', '.join(FORMATS)}")
+        raise OptionError(f"unknown format {fmt!r}; use one of {', '.join(FORMATS)}", field="format")
     frames = read_drive_file(drive_path, avatar, size, size)
     renderer = AvatarRenderer(avatar, backend)
     out = Path(out_dir)
@@ -40,7 +42,7 @@ def render_drive(
     files: list[str] = []
     video = VideoWriter(out / "render.mp4", size, size, fps=fps) if fmt == "mp4" else None
     try:
-        for i, df in enumerate(tqdm(frames, desc="render", unit="frame", disable=not progress)):
+        for i, df in enumerate(frames):
             result = renderer.render(df.frame, df.camera, background=bg)
             if video is not None:
                 video.write(result.rgb[0])
@@ -49,6 +51,8 @@ def render_drive(
                 rgb, alpha = result.rgb[0], result.alpha[0]  # PNG: the colour over the background; EXR: RGBA
                 write_image(path, torch.cat([rgb, alpha[..., None]], -1) if fmt == "exr" else rgb)
                 files.append(str(path))
+            if progress is not None:
+                progress(i + 1, len(frames))
     finally:
         if video is not None:
             video.close()

@@ -16,6 +16,7 @@ from torch import Tensor
 
 from ..avatar import FLAME_JOINTS, FLAME_MOUTH_JOINTS, FLAME_PARENTS, Avatar, Gaussians, sh_coeff_count
 from ..camera import front_camera
+from ..errors import OptionError
 from ..rotation import matrix_to_quat
 
 SH_C0 = 0.28209479177387814
@@ -110,8 +111,12 @@ def synth_avatar(
     gives each blendshape compact support instead, as a face model's has: the bump is cut where it falls below
     1e-3 and Gaussians outside it (the back of the head, most of the face) have exactly zero deltas.
     """
-    if gaussians < 1 or blendshapes < 0:
-        raise ValueError("need at least one Gaussian and a non-negative blendshape count")
+    if gaussians < 1:
+        raise OptionError(f"need at least one Gaussian, got {gaussians}", field="gaussians")
+    if blendshapes < 0:
+        raise OptionError(f"must not be negative, got {blendshapes}", field="blendshapes")
+    if mouth is not None and mouth < 0:
+        raise OptionError(f"must not be negative, got {mouth}", field="mouth")
     g = torch.Generator().manual_seed(seed)
     n, k, c = gaussians, blendshapes, sh_coeff_count(sh_degree)
     m = max(2, gaussians // 8) if mouth is None else mouth
