@@ -1,18 +1,12 @@
 """Scenes and image comparisons shared by the cuda backend's tests (test_cuda_conventions on the CPU, test_cuda on
 a GPU)."""
 
-import math
-
 import torch
 
 from render_core.camera import orbit
 from render_core.deform import deform, shade
+from render_core.evaluation.metrics import psnr
 from render_core.tools.bench import random_frames
-
-
-def psnr(a, b, peak=1.0):
-    mse = float(((a.double() - b.double()) ** 2).mean())
-    return math.inf if mse == 0 else 10 * math.log10(peak**2 / mse)
 
 
 def random_scene(n=400, seed=0):

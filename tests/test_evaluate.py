@@ -1,8 +1,10 @@
-"""Held-out evaluation (PSNR, SSIM, psnr_head; LPIPS only with local weights) and the loss-curve plot."""
+"""The metrics (the one PSNR and SSIM of training and evaluation) and the held-out evaluation (PSNR, SSIM, psnr_head;
+LPIPS only with local weights; the contact sheet, or the reason it was skipped)."""
 
 from __future__ import annotations
 
 import json
+import logging
 import math
 
 import numpy as np
@@ -10,17 +12,8 @@ import pytest
 import torch
 
 from render_core.errors import DatasetError
-from render_core.evaluation.plot import nice_ticks, plot_curves
-from render_core.evaluation.report import (
-    PSNR_CAP,
-    evaluate,
-    psnr,
-    psnr_from_mse,
-    psnr_masked,
-    run_eval,
-    ssim,
-    ssim_batch,
-)
+from render_core.evaluation.metrics import PSNR_CAP, psnr, psnr_from_mse, psnr_masked, ssim
+from render_core.evaluation.report import evaluate, run_eval
 
 
 def _image(seed: int = 0, h: int = 24, w: int = 20) -> torch.Tensor:
@@ -50,7 +43,7 @@ def test_psnr_of_identical_images_is_capped_and_ssim_is_one():
     img = _image()
     assert psnr(img, img) == PSNR_CAP == 100.0  # documented cap instead of inf: reports stay standard JSON
     assert psnr_from_mse(0.0) == PSNR_CAP
-    assert ssim(img, img) == pytest.approx(1.0, abs=1e-12)
+    assert float(ssim(img, img)) == pytest.approx(1.0, abs=1e-12)
     assert psnr_masked(img, img, torch.ones(24, 20)) == PSNR_CAP
 
 
@@ -82,22 +75,104 @@ def test_psnr_head_uses_only_the_mask_pixels():
         psnr_masked(pred, gt, torch.ones(9, 10))
 
 
+def test_psnr_of_8_bit_images_uses_their_data_range():
+    a = np.zeros((4, 4, 3), np.uint8)
+    assert psnr(a, np.full_like(a, 51), data_range=255) == pytest.approx(20 * math.log10(5))  # 51 = 255 / 5
+    assert psnr(a, a, data_range=255) == PSNR_CAP
+    with pytest.raises(ValueError, match="shapes differ"):
+        psnr(a, a[:3])
+
+
 def test_ssim_of_a_blurred_copy_is_below_one_and_symmetric():
     img = _image(1)
     blurred = _blur(img)
-    s = ssim(img, blurred)
+    s = float(ssim(img, blurred))
     assert 0.0 < s < 0.99
-    assert ssim(blurred, img) == pytest.approx(s, abs=1e-12)
-    batch = ssim_batch(torch.stack([img, img]), torch.stack([img, blurred]))
-    assert batch[0].item() == pytest.approx(1.0) and batch[1].item() == pytest.approx(s)
-    assert ssim(img[..., 0], blurred[..., 0]) < 1.0  # greyscale [H, W]
+    assert float(ssim(blurred, img)) == pytest.approx(s, abs=1e-12)
+    batch = ssim(torch.stack([img, img]), torch.stack([img, blurred]), reduction="none")
+    assert batch.shape == (2,) and batch[0].item() == pytest.approx(1.0) and batch[1].item() == pytest.approx(s)
+    assert float(ssim(torch.stack([img, img]), torch.stack([img, blurred]))) == pytest.approx((1 + s) / 2)
+    assert ssim(img, blurred, reduction="none").shape == ()  # one image, one value
+    assert float(ssim(img[..., 0], blurred[..., 0])) < 1.0  # greyscale [H, W]
+    assert float(ssim(img.numpy(), blurred.numpy())) == pytest.approx(s, abs=1e-12)  # numpy too
 
 
 def test_ssim_of_a_constant_offset_matches_the_formula():
     # Constant images: variances and covariance are 0, so SSIM = (2 mx my + C1) / (mx^2 + my^2 + C1) exactly.
     a, b = torch.full((16, 16, 3), 0.2, dtype=torch.float64), torch.full((16, 16, 3), 0.6, dtype=torch.float64)
     c1 = 0.01 ** 2
-    assert ssim(a, b) == pytest.approx((2 * 0.2 * 0.6 + c1) / (0.2 ** 2 + 0.6 ** 2 + c1), rel=1e-9)
+    assert float(ssim(a, b)) == pytest.approx((2 * 0.2 * 0.6 + c1) / (0.2 ** 2 + 0.6 ** 2 + c1), rel=1e-9)
+
+
+def _direct_ssim(x: np.ndarray, y: np.ndarray, padding: str) -> float:
+    """SSIM written out window by window (2-D Gaussian weights, 11 x 11, sigma 1.5), as a check of the separable,
+    batched implementation. ``padding="same"`` pads with zeros by 5 pixels."""
+    r = np.arange(11) - 5.0
+    g = np.exp(-(r ** 2) / (2 * 1.5 ** 2))
+    win = np.outer(g, g) / np.outer(g, g).sum()
+    if padding == "same":
+        x, y = (np.pad(v, ((5, 5), (5, 5), (0, 0))) for v in (x, y))
+    c1, c2 = 0.01 ** 2, 0.03 ** 2
+    values = []
+    for i in range(x.shape[0] - 10):
+        for j in range(x.shape[1] - 10):
+            for c in range(x.shape[2]):
+                px, py = x[i:i + 11, j:j + 11, c], y[i:i + 11, j:j + 11, c]
+                mx, my = (win * px).sum(), (win * py).sum()
+                vx, vy = (win * px * px).sum() - mx ** 2, (win * py * py).sum() - my ** 2
+                cxy = (win * px * py).sum() - mx * my
+                values.append((2 * mx * my + c1) * (2 * cxy + c2) / ((mx ** 2 + my ** 2 + c1) * (vx + vy + c2)))
+    return float(np.mean(values))
+
+
+def test_ssim_conventions_match_a_direct_computation():
+    a, b = _image(2, 16, 14), _blur(_image(3, 16, 14))
+    valid = float(ssim(a, b, padding="valid"))
+    same = float(ssim(a, b, padding="same"))
+    assert valid == pytest.approx(_direct_ssim(a.numpy(), b.numpy(), "valid"), abs=1e-12)
+    assert same == pytest.approx(_direct_ssim(a.numpy(), b.numpy(), "same"), abs=1e-12)
+    assert abs(same - valid) > 1e-3  # the border convention matters: training and evaluation each name theirs
+    for kwargs in ({"padding": "reflect"}, {"reduction": "sum"}, {"padding": "same", "window": 10}):
+        with pytest.raises(ValueError):
+            ssim(a, b, **kwargs)
+    with pytest.raises(ValueError, match="one shape"):
+        ssim(a, b[:8])
+    small = _image(4, 6, 7)  # smaller than the window: "valid" shrinks the window to the image
+    assert float(ssim(small, small)) == pytest.approx(1.0) and float(ssim(small, _blur(small))) < 1.0
+
+
+def _pattern(b: int = 2, h: int = 20, w: int = 23) -> torch.Tensor:
+    y, x = torch.arange(h, dtype=torch.float64)[:, None], torch.arange(w, dtype=torch.float64)[None, :]
+    return torch.stack([torch.stack([0.5 + 0.4 * torch.sin(0.3 * x + 0.2 * y + k),
+                                     0.5 + 0.4 * torch.cos(0.25 * y - 0.1 * x * k),
+                                     0.5 + 0.3 * torch.sin(0.05 * x * y + k)], -1) for k in range(b)])
+
+
+def test_ssim_keeps_the_numbers_of_the_former_loss_and_evaluation_ssims():
+    # Values of the two SSIMs this one replaced (the training loss's zero-padded float32 one and the evaluation's
+    # valid-window float64 one), on a fixed pattern: training and reported results do not change.
+    a, t = _pattern(), _pattern().flip(2)
+    assert ssim(a.float(), t.float(), padding="same").item() == pytest.approx(0.4568280577659607, rel=1e-6)
+    assert ssim(a, t, reduction="none").tolist() == pytest.approx([0.38848313530364503, 0.14633355242198048],
+                                                                 abs=1e-12)
+
+
+def test_the_training_loss_uses_the_same_ssim_zero_padded_and_differentiable():
+    from render_core.train.losses import RGB_DSSIM, MouthCylinder, total_loss
+
+    g = torch.Generator().manual_seed(0)
+    target = _pattern(1).float()
+    rgb = (target + 0.05 * torch.randn(target.shape, generator=g)).clamp(0, 1).requires_grad_()
+    mask = torch.ones(1, 20, 23)
+    cylinder = MouthCylinder.from_points(torch.zeros(2, 3))
+    loss, terms = total_loss(rgb, mask, target, mask, torch.zeros(2, 3), cylinder)
+    assert terms["ssim"].dtype == torch.float32
+    assert torch.equal(terms["ssim"], ssim(rgb, target, padding="same"))  # the same code, same border convention
+    assert not torch.equal(terms["ssim"], ssim(rgb, target))
+    (grad,) = torch.autograd.grad(RGB_DSSIM * (1 - ssim(rgb, target, padding="same")), rgb)
+    assert torch.isfinite(grad).all() and grad.abs().sum() > 0
+    loss.backward()
+    assert torch.isfinite(rgb.grad).all()
 
 
 # ------------------------------------------------------------------------------------------------- evaluation
@@ -128,9 +203,12 @@ def test_evaluate_reports_every_held_out_frame(scene, monkeypatch):
 
     saved = json.loads((root / "report.json").read_text())
     assert saved["psnr"] == pytest.approx(result["psnr"]) and saved["frames"] == result["frames"]
+    assert result["contact_sheet"] == saved["contact_sheet"] == str(root / "sheet.png")
+    assert result["plots"] == {"contact_sheet": str(root / "sheet.png")}
     w, h, c, px = _read_png(root / "sheet.png")
-    assert c == 3 and w > 2 * 48 and h > 48 * result["frames"]
-    assert px.max() > 100  # not blank
+    rows = min(4, result["frames"])
+    assert c == 4 and w > 2 * 48 and h > 48 * rows
+    assert px[..., :3].std() > 10  # not blank
 
 
 def test_evaluate_all_frames_in_batches_and_from_a_bundle(scene, capsys, monkeypatch):
@@ -185,26 +263,32 @@ def test_evaluate_rejects_a_mismatched_avatar_and_bad_arguments(scene):
         evaluate(avatar, root / "missing")
 
 
-# ------------------------------------------------------------------------------------------------------- plot
-def test_plot_curves_writes_a_png_of_the_expected_size(tmp_path):
-    log = tmp_path / "log.jsonl"
-    with open(log, "w") as f:
-        for i in range(0, 200, 10):
-            f.write(json.dumps({"iteration": i, "loss": 0.3 * math.exp(-i / 50) + 0.02, "l1": 0.1, "ssim": 0.9,
-                                "alpha": 0.01, "psnr": 15 + i / 20, "seconds": i * 0.1}) + "\n")
-        f.write('{"iteration": 200, "loss": 0.0')  # a line being written: skipped
-    out = plot_curves(log, tmp_path / "plots" / "curves.png")
-    w, h, c, px = _read_png(out)
-    assert (w, h, c) == (640, 400, 3)
-    assert (px != 255).any(axis=2).mean() > 0.01  # axes, grid, text and curves drawn
-    blue = (px == (31, 119, 180)).all(axis=2)
-    assert blue[:200].sum() > 100 and blue[200:].sum() == 0  # the first key's curve stays in its panel
-    out = plot_curves(log, tmp_path / "one.png", keys=("psnr", "missing"), width=300, panel_height=120)
-    assert _read_png(out)[:3] == (300, 240, 3)
+def test_evaluate_without_matplotlib_writes_the_numbers_and_says_why_the_sheet_was_skipped(scene, monkeypatch,
+                                                                                          tmp_path, caplog, capsys):
+    from tests.test_plot import hide_matplotlib
+
+    monkeypatch.delenv("BLENDSPLAT_LPIPS_WEIGHTS", raising=False)
+    root, summary, avatar = scene
+    hide_matplotlib(monkeypatch)
+    with caplog.at_level(logging.WARNING, logger="render_core.evaluation"):
+        result = evaluate(avatar, root / "ds", contact_sheet=tmp_path / "sheet.png", report=tmp_path / "report.json")
+    reason = result["plots"]["skipped"]
+    assert "matplotlib is not installed" in reason and "blendsplat[train]" in reason
+    assert result["contact_sheet"] is None and not (tmp_path / "sheet.png").exists()
+    assert any(reason in n for n in result["notes"]) and reason in caplog.text
+    assert capsys.readouterr().out == ""  # logged, not printed
+    saved = json.loads((tmp_path / "report.json").read_text())
+    assert saved["plots"] == {"skipped": reason} and saved["frames"] == result["frames"] >= 1
+    assert math.isfinite(saved["psnr"]) and math.isfinite(saved["ssim"])
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["report.json"]  # no temporary file left behind
+    assert run_eval(avatar, root / "ds", contact_sheet=tmp_path / "sheet.png") == 0
+    assert f"contact sheet skipped: {reason}" in capsys.readouterr().out  # the command line says so
 
 
-def test_nice_ticks_are_round_and_cover_the_range():
-    ticks = nice_ticks(0.013, 0.31, 5)
-    assert np.allclose(ticks, [0.1, 0.2, 0.3])
-    assert np.allclose(nice_ticks(0, 1000, 5), [0, 500, 1000])
-    assert np.allclose(nice_ticks(0, 1000, 11), [0, 100, 200, 300, 400, 500, 600, 700, 800, 900, 1000])
+def test_the_metrics_examples_run():
+    import doctest
+
+    from render_core.evaluation import metrics
+
+    result = doctest.testmod(metrics)
+    assert result.attempted >= 8 and result.failed == 0

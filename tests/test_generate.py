@@ -19,6 +19,7 @@ from render_core.data.generate import (
 )
 from render_core.data.meshraster import icosphere, rasterize
 from render_core.data.portable import TRACKING_ARRAYS
+from render_core.evaluation.metrics import psnr_masked
 from render_core.facemodel.model import FaceModel
 from render_core.rotation import axis_angle_to_matrix
 
@@ -90,10 +91,6 @@ def _blur(img: np.ndarray, sigma: float = 1.0) -> np.ndarray:
     t = torch.nn.functional.conv2d(torch.nn.functional.pad(t, (r, r, 0, 0)), k.view(1, 1, 1, -1))
     t = torch.nn.functional.conv2d(torch.nn.functional.pad(t, (0, 0, r, r)), k.view(1, 1, -1, 1))
     return t[:, 0].permute(1, 2, 0).numpy()
-
-
-def _masked_psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float:
-    return float(10 * np.log10(1.0 / ((a - b) ** 2)[mask].mean()))
 
 
 def _dataset_files(root):
@@ -284,7 +281,7 @@ def test_blur_bar_and_acceptance_run_with_the_open_head(open_head_model, tmp_pat
         frame = rgb.astype(np.float64) / 255.0
         head = mask > 0
         assert 0.15 < head.mean() < 0.5
-        assert _masked_psnr(frame, _blur(frame), head) < 30.0
+        assert psnr_masked(frame, _blur(frame), head) < 30.0
     summary = synth_dataset(tmp_path / "oh", frames=12, size=128, seed=1, facemodel=m)
     assert validate_dataset(tmp_path / "oh") == []
     assert (summary["train"], summary["test"], summary["face_model"]) == (10, 2, m.name)

@@ -16,6 +16,7 @@ import torch
 from render_core.camera import Cameras, intrinsics, look_at, orbit
 from render_core.deform import Frame, deform
 from render_core.errors import FrameError, ShapeError
+from render_core.evaluation.metrics import psnr
 from render_core.media.pixels import to_uint8
 from render_core.raster import backend_names, default_backend, native, reference, render
 from render_core.renderer import AvatarRenderer
@@ -43,13 +44,6 @@ def _cached(key, make):
 
 
 # ------------------------------------------------------------------------------------------------ helpers
-
-
-def psnr(a: torch.Tensor, b: torch.Tensor) -> float:
-    """PSNR in dB for images in [0, 1] (inf when equal)."""
-    assert a.shape == b.shape, (a.shape, b.shape)
-    mse = float(((a.double() - b.double()) ** 2).mean())
-    return math.inf if mse == 0 else 10 * math.log10(1.0 / mse)
 
 
 def assert_alpha_bar(alpha: torch.Tensor, ref_alpha: torch.Tensor, tol: float = ALPHA_TOL,

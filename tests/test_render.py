@@ -1,20 +1,14 @@
 """The render() entry point on deformed avatars: rigid-motion equivalence, broadcasting, backend selection."""
 
-import math
-
 import pytest
 import torch
 
 from render_core.camera import Cameras, orbit
 from render_core.deform import Frame, deform
 from render_core.errors import ShapeError
+from render_core.evaluation.metrics import psnr
 from render_core.raster import backend_names, render
 from render_core.rotation import axis_angle_to_matrix
-
-
-def psnr(a, b):
-    mse = float(((a - b) ** 2).mean())
-    return math.inf if mse == 0 else 10 * math.log10(1.0 / mse)
 
 
 def test_global_head_rotation_equals_inverse_camera_rotation(avatar):

@@ -1,146 +1,111 @@
-"""Training curves as PNG without matplotlib: a small numpy line-plot renderer and a built-in 3x5 bitmap font.
+"""Figures of training and evaluation, drawn with matplotlib's Agg backend: the training curves and the contact sheet.
 
-:func:`plot_curves` reads a training log (``log.jsonl``: one JSON object per line with ``iteration`` and the logged
-values, e.g. ``loss``, ``l1``, ``ssim``, ``alpha``, ``psnr``, ``seconds``) and draws one panel per key, stacked
-vertically: the curve against the iteration, axes, a grid at round tick values with their labels, and a title
-line with the key's last, minimum and maximum values (and the iterations where the extremes occur).
+matplotlib is optional (the ``train`` extra: ``pip install 'blendsplat[train]'``; the render service does not need
+it). It is imported only when a figure is drawn, and only through ``matplotlib.figure.Figure`` with an explicit
+``FigureCanvasAgg``: no pyplot, no global backend or figure state, so drawing is safe from worker threads.
 
-:func:`draw_text` and :func:`write_png` are shared with the evaluation's contact sheet.
+Without matplotlib every drawing function raises :class:`PlotsUnavailable`, whose ``reason`` says why and how to
+install it; :func:`training_plots` and the evaluation record that reason (``{"skipped": reason}``) and log it
+instead of failing, so a run still writes all of its numbers.
+
+- :func:`plot_curves` / :func:`curves_figure`: a training log (``log.jsonl``) as one panel per logged key against
+  the iteration.
+- :func:`write_contact_sheet` / :func:`contact_sheet_figure`: prediction | ground truth per evaluated frame,
+  each row captioned with the frame index and its PSNR.
+
+Example::
+
+    >>> from render_core.evaluation.plot import PlotsUnavailable, plot_curves
+    >>> try:
+    ...     plot_curves("run/log.jsonl", "run/curves.png", keys=("loss", "psnr"))
+    ... except PlotsUnavailable as e:
+    ...     print("plots skipped:", e.reason)
 """
 
 from __future__ import annotations
 
 import json
+import logging
 import math
 import os
+from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-# 3x5 glyphs, rows top to bottom ('#' = ink). Text is drawn upper-case; unknown characters draw as '?'.
-_GLYPHS = {
-    "A": (".#.", "#.#", "###", "#.#", "#.#"), "B": ("##.", "#.#", "##.", "#.#", "##."),
-    "C": (".##", "#..", "#..", "#..", ".##"), "D": ("##.", "#.#", "#.#", "#.#", "##."),
-    "E": ("###", "#..", "##.", "#..", "###"), "F": ("###", "#..", "##.", "#..", "#.."),
-    "G": (".##", "#..", "#.#", "#.#", ".##"), "H": ("#.#", "#.#", "###", "#.#", "#.#"),
-    "I": ("###", ".#.", ".#.", ".#.", "###"), "J": ("..#", "..#", "..#", "#.#", ".#."),
-    "K": ("#.#", "#.#", "##.", "#.#", "#.#"), "L": ("#..", "#..", "#..", "#..", "###"),
-    "M": ("#.#", "###", "###", "#.#", "#.#"), "N": ("##.", "#.#", "#.#", "#.#", "#.#"),
-    "O": (".#.", "#.#", "#.#", "#.#", ".#."), "P": ("##.", "#.#", "##.", "#..", "#.."),
-    "Q": (".#.", "#.#", "#.#", "##.", ".##"), "R": ("##.", "#.#", "##.", "#.#", "#.#"),
-    "S": (".##", "#..", ".#.", "..#", "##."), "T": ("###", ".#.", ".#.", ".#.", ".#."),
-    "U": ("#.#", "#.#", "#.#", "#.#", "###"), "V": ("#.#", "#.#", "#.#", "#.#", ".#."),
-    "W": ("#.#", "#.#", "###", "###", "#.#"), "X": ("#.#", "#.#", ".#.", "#.#", "#.#"),
-    "Y": ("#.#", "#.#", ".#.", ".#.", ".#."), "Z": ("###", "..#", ".#.", "#..", "###"),
-    "0": ("###", "#.#", "#.#", "#.#", "###"), "1": (".#.", "##.", ".#.", ".#.", "###"),
-    "2": ("##.", "..#", ".#.", "#..", "###"), "3": ("##.", "..#", ".#.", "..#", "##."),
-    "4": ("#.#", "#.#", "###", "..#", "..#"), "5": ("###", "#..", "##.", "..#", "##."),
-    "6": (".##", "#..", "###", "#.#", "###"), "7": ("###", "..#", ".#.", ".#.", ".#."),
-    "8": ("###", "#.#", "###", "#.#", "###"), "9": ("###", "#.#", "###", "..#", "##."),
-    ".": ("...", "...", "...", "...", ".#."), ",": ("...", "...", "...", ".#.", "#.."),
-    "-": ("...", "...", "###", "...", "..."), "+": ("...", ".#.", "###", ".#.", "..."),
-    ":": ("...", ".#.", "...", ".#.", "..."), "=": ("...", "###", "...", "###", "..."),
-    "_": ("...", "...", "...", "...", "###"), "/": ("..#", "..#", ".#.", "#..", "#.."),
-    "(": (".#.", "#..", "#..", "#..", ".#."), ")": (".#.", "..#", "..#", "..#", ".#."),
-    "|": (".#.", ".#.", ".#.", ".#.", ".#."), "%": ("#.#", "..#", ".#.", "#..", "#.#"),
-    "#": ("#.#", "###", "#.#", "###", "#.#"), "?": ("##.", "..#", ".#.", "...", ".#."),
-    " ": ("...", "...", "...", "...", "..."),
-}
-_FONT = {c: np.array([[ch == "#" for ch in row] for row in rows], dtype=bool) for c, rows in _GLYPHS.items()}
-GLYPH_W, GLYPH_H = 3, 5  # pixels at scale 1; characters advance by GLYPH_W + 1
+from ..atomic import atomic_path
 
-WHITE = (255, 255, 255)
-BLACK = (0, 0, 0)
-GRID = (225, 225, 225)
-AXIS = (60, 60, 60)
-TEXT = (30, 30, 30)
-COLOURS = ((31, 119, 180), (214, 39, 40), (44, 160, 44), (148, 103, 189), (255, 127, 14), (23, 190, 207))
+if TYPE_CHECKING:  # matplotlib is optional: imported lazily by _matplotlib()
+    from matplotlib.figure import Figure
+
+log = logging.getLogger(__name__)
+
+INSTALL_HINT = "pip install 'blendsplat[train]'"
+DPI = 100  # pixels per inch of every figure: sizes below are in pixels
+
+# Curves: how each logged key is labelled and which way is better.
+LABELS = {"loss": "loss", "l1": "L1", "ssim": "SSIM", "alpha": "alpha MSE", "mouth": "mouth cylinder",
+          "psnr": "PSNR (dB)", "psnr_head": "head PSNR (dB)", "gaussians": "Gaussians", "seconds": "seconds"}
+HIGHER_IS_BETTER = frozenset({"psnr", "psnr_head", "ssim"})
+LOG_SPAN = 10.0  # a panel whose values are all positive and span at least this factor gets a log y axis
+COLOURS = ("tab:blue", "tab:red", "tab:green", "tab:purple", "tab:orange", "tab:cyan")
+
+# Contact sheet: pixels.
+SHEET_MIN_WIDTH = 192  # smaller frames are enlarged (nearest neighbour, integer factor) to at least this width
+SHEET_PAD = 6
+SHEET_HEADER = 26  # the column titles
+SHEET_CAPTION = 24  # a row's caption
+SHEET_BACKGROUND = (0.16, 0.16, 0.16)
 
 
-def text_width(text: str, scale: int = 1) -> int:
-    """Pixel width of ``text`` drawn by :func:`draw_text` at ``scale``."""
-    return max(0, len(text) * (GLYPH_W + 1) - 1) * scale
+class PlotsUnavailable(RuntimeError):
+    """matplotlib cannot be imported, so no figure can be drawn; ``reason`` says why and how to install it."""
+
+    def __init__(self, reason: str):
+        super().__init__(reason)
+        self.reason = reason
 
 
-def draw_text(img: np.ndarray, x: int, y: int, text: str, colour=TEXT, scale: int = 1) -> None:
-    """Draw ``text`` into ``img`` [H, W, 3] uint8 with its top-left corner at (x, y); clipped at the edges."""
-    h, w = img.shape[:2]
-    for k, ch in enumerate(text.upper()):
-        glyph = _FONT.get(ch, _FONT["?"])
-        if scale > 1:
-            glyph = glyph.repeat(scale, 0).repeat(scale, 1)
-        gx = x + k * (GLYPH_W + 1) * scale
-        ys, xs = np.nonzero(glyph)
-        ys, xs = ys + y, xs + gx
-        keep = (ys >= 0) & (ys < h) & (xs >= 0) & (xs < w)
-        img[ys[keep], xs[keep]] = colour
+def _matplotlib():
+    """(Figure, FigureCanvasAgg), imported on first use; PlotsUnavailable without a usable matplotlib."""
+    try:
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.figure import Figure
+    except ImportError as e:
+        if isinstance(e, ModuleNotFoundError) and (e.name or "").split(".")[0] == "matplotlib":
+            raise PlotsUnavailable(f"matplotlib is not installed: {INSTALL_HINT}") from None
+        raise PlotsUnavailable(f"matplotlib cannot be imported ({e}): {INSTALL_HINT}") from None
+    return Figure, FigureCanvasAgg
 
 
-def draw_polyline(img: np.ndarray, xs: np.ndarray, ys: np.ndarray, colour, thickness: int = 2) -> None:
-    """Connect the points (xs[i], ys[i]) (pixel coordinates, floats) with straight segments."""
-    xs, ys = np.asarray(xs, dtype=np.float64), np.asarray(ys, dtype=np.float64)
-    if xs.size == 0:
-        return
-    if xs.size == 1:
-        px, py = xs, ys
-    else:
-        steps = np.maximum(np.ceil(np.maximum(np.abs(np.diff(xs)), np.abs(np.diff(ys)))), 1).astype(np.int64)
-        seg = np.repeat(np.arange(steps.size), steps)
-        t = (np.arange(seg.size) - np.repeat(np.cumsum(steps) - steps, steps)) / steps[seg]
-        px = np.concatenate([xs[seg] + t * (xs[seg + 1] - xs[seg]), xs[-1:]])
-        py = np.concatenate([ys[seg] + t * (ys[seg + 1] - ys[seg]), ys[-1:]])
-    px, py = np.rint(px).astype(np.int64), np.rint(py).astype(np.int64)
-    h, w = img.shape[:2]
-    for dy in range(thickness):
-        for dx in range(thickness):
-            qx, qy = px + dx - thickness // 2, py + dy - thickness // 2
-            keep = (qx >= 0) & (qx < w) & (qy >= 0) & (qy < h)
-            img[qy[keep], qx[keep]] = colour
+def unavailable() -> str | None:
+    """Why figures cannot be drawn here (matplotlib missing or broken), or None when they can."""
+    try:
+        _matplotlib()
+    except PlotsUnavailable as e:
+        return e.reason
+    return None
 
 
-def nice_ticks(lo: float, hi: float, count: int = 5) -> np.ndarray:
-    """Round tick values (1, 2 or 5 times a power of ten apart) covering [lo, hi]."""
-    if not (math.isfinite(lo) and math.isfinite(hi)):
-        return np.zeros(0)
-    if hi <= lo:
-        return np.array([lo])
-    raw = (hi - lo) / max(count - 1, 1)
-    mag = 10.0 ** math.floor(math.log10(raw))
-    step = next(m * mag for m in (1.0, 2.0, 5.0, 10.0) if m * mag >= raw)
-    first = math.ceil(lo / step - 1e-9) * step
-    ticks = np.arange(first, hi + step * 1e-9, step)
-    return ticks[(ticks >= lo - step * 1e-9) & (ticks <= hi + step * 1e-9)]
+def _figure(width: int, height: int, **kwargs) -> Figure:
+    """A ``width`` x ``height`` pixel figure with its own Agg canvas (no pyplot)."""
+    fig_cls, canvas_cls = _matplotlib()
+    fig = fig_cls(figsize=(width / DPI, height / DPI), dpi=DPI, **kwargs)
+    canvas_cls(fig)
+    return fig
 
 
-def format_number(v: float) -> str:
-    """Short label for a tick or a value: up to 4 significant digits, scientific when very large or small."""
-    if v == 0 or not math.isfinite(v):
-        return "0" if v == 0 else str(v)
-    a = abs(v)
-    if a >= 1e5 or a < 1e-3:
-        return f"{v:.1e}".replace("e-0", "e-").replace("e+0", "e")
-    return f"{v:.4g}"
+def save_figure(fig: Figure, out_png: str | os.PathLike) -> Path:
+    """Write ``fig`` as a PNG (RGBA, the figure's pixel size) to ``out_png``, atomically; returns the path."""
+    out_png = Path(out_png)
+    out_png.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(out_png) as tmp:
+        fig.savefig(tmp, format="png", dpi=DPI)
+    return out_png
 
 
-def write_png(path: str | os.PathLike, pixels: np.ndarray) -> Path:
-    """Write an [H, W, 3] uint8 image with OpenImageIO (the format follows the extension)."""
-    import OpenImageIO as oiio
-
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    pixels = np.ascontiguousarray(pixels, dtype=np.uint8)
-    out = oiio.ImageOutput.create(str(path))
-    if out is None:
-        raise OSError(f"cannot write {path}: {oiio.geterror()}")
-    ok = out.open(str(path), oiio.ImageSpec(pixels.shape[1], pixels.shape[0], pixels.shape[2], "uint8"))
-    ok = ok and out.write_image(pixels)
-    err = out.geterror()
-    out.close()
-    if not ok:
-        raise OSError(f"cannot write {path}: {err}")
-    return path
-
-
+# ---------------------------------------------------------------------------------------------------- curves
 def read_log(path: str | os.PathLike) -> list[dict]:
     """The records of a ``log.jsonl`` (blank and malformed lines are skipped: a run may be writing the last one)."""
     records = []
@@ -158,86 +123,136 @@ def read_log(path: str | os.PathLike) -> list[dict]:
     return records
 
 
+def _number(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
 def _series(records: list[dict], key: str) -> tuple[np.ndarray, np.ndarray]:
-    """(iterations, values) of the records with a finite number under ``key``."""
+    """(iterations, values) of the records with a finite number under ``key`` (the record's position when it has
+    no usable ``iteration``)."""
     xs, ys = [], []
     for n, rec in enumerate(records):
         v, it = rec.get(key), rec.get("iteration", n)
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-            continue
-        if isinstance(it, bool) or not isinstance(it, (int, float)) or not math.isfinite(it):
-            it = n
-        xs.append(float(it))
-        ys.append(float(v))
+        if _number(v):
+            xs.append(float(it) if _number(it) else float(n))
+            ys.append(float(v))
     return np.asarray(xs), np.asarray(ys)
 
 
-def _panel(img: np.ndarray, top: int, height: int, key: str, xs: np.ndarray, ys: np.ndarray, colour,
-           x_range: tuple[float, float], scale: int) -> None:
-    w = img.shape[1]
-    ch = (GLYPH_H + 2) * scale  # a text line
-    left, right = text_width("000000", scale) + 8, w - text_width("00000", scale) // 2 - 6  # room for tick labels
-    y0, y1 = top + ch + 6, top + height - 2 * ch - 4  # plot area rows (inclusive); below: ticks, axis name
-    if ys.size:
-        i_min, i_max = int(np.argmin(ys)), int(np.argmax(ys))
-        title = (f"{key}  last {format_number(ys[-1])}  min {format_number(ys[i_min])} at {xs[i_min]:.0f}"
-                 f"  max {format_number(ys[i_max])} at {xs[i_max]:.0f}")
-    else:
-        title = f"{key}  (no data)"
-    draw_text(img, left, top + 2, title, colour, scale)
-    lo_x, hi_x = x_range
-    lo_y, hi_y = (float(ys.min()), float(ys.max())) if ys.size else (0.0, 1.0)
-    if hi_y - lo_y < 1e-12 * max(1.0, abs(hi_y)):
-        pad = max(abs(hi_y) * 0.05, 1e-6)
-        lo_y, hi_y = lo_y - pad, hi_y + pad
-    else:
-        pad = 0.05 * (hi_y - lo_y)
-        lo_y, hi_y = lo_y - pad, hi_y + pad
-
-    def px(x):
-        return left + (np.asarray(x) - lo_x) / max(hi_x - lo_x, 1e-12) * (right - left)
-
-    def py(y):
-        return y1 - (np.asarray(y) - lo_y) / (hi_y - lo_y) * (y1 - y0)
-
-    for t in nice_ticks(lo_y, hi_y, max(2, (y1 - y0) // (ch * 3))):
-        r = int(round(float(py(t))))
-        img[r, left:right + 1] = GRID
-        label = format_number(float(t))
-        draw_text(img, left - 4 - text_width(label, scale), r - GLYPH_H * scale // 2, label, TEXT, scale)
-    for t in nice_ticks(lo_x, hi_x, max(2, (right - left) // (text_width("000000", scale) * 2))):
-        c = int(round(float(px(t))))
-        img[y0:y1 + 1, c] = GRID
-        label = format_number(float(t))
-        draw_text(img, c - text_width(label, scale) // 2, y1 + 3, label, TEXT, scale)
-    img[y0:y1 + 1, left] = AXIS
-    img[y1, left:right + 1] = AXIS
-    if ys.size:
-        draw_polyline(img, px(xs), py(ys), colour, thickness=max(1, scale))
+def _short(v: float) -> str:
+    return f"{v:.3g}" if abs(v) < 1e4 else f"{v:.3e}"
 
 
-def plot_curves(log_jsonl_path: str | os.PathLike, out_png: str | os.PathLike, keys=("loss", "psnr"), *,
-                width: int = 640, panel_height: int = 200, scale: int = 1) -> Path:
-    """Plot ``keys`` of a training log against the iteration, one panel per key, into ``out_png``.
+def curves_figure(records: list[dict], keys: Sequence[str] | str = ("loss", "psnr"), *, width: int = 640,
+                  panel_height: int = 200, title: str = "training curves") -> Figure:
+    """The figure :func:`plot_curves` saves: one panel per key of ``records`` (log records), sharing the x axis.
 
-    The image is ``width`` x ``panel_height * len(keys)`` pixels; a key absent from the log gets an empty panel
-    titled "(no data)". ``scale`` enlarges the text. Returns the PNG's path."""
+    Each panel plots the key against the iteration, with a legend naming the curve and its last value and marking
+    the best value (the maximum for PSNR and SSIM, the minimum otherwise), a y-axis label with units and a grid;
+    a panel whose values are all positive and span at least a factor :data:`LOG_SPAN` (a loss over a long run)
+    gets a log y axis. A key absent from the records gets an empty panel reading "no data". The bottom panel's x
+    axis reads "iteration"; ``title`` heads the figure. The figure is ``width`` x ``panel_height * len(keys)``
+    pixels. Raises PlotsUnavailable without matplotlib, ValueError for no key or a figure under 160 x 60 per
+    panel."""
     keys = [keys] if isinstance(keys, str) else list(keys)
     if not keys:
         raise ValueError("plot_curves needs at least one key")
     if width < 160 or panel_height < 60:
         raise ValueError(f"the plot is too small ({width} x {panel_height} per panel): at least 160 x 60")
-    records = read_log(log_jsonl_path)
-    series = [_series(records, k) for k in keys]
-    all_x = np.concatenate([xs for xs, _ in series]) if series else np.zeros(0)
-    lo_x, hi_x = (float(all_x.min()), float(all_x.max())) if all_x.size else (0.0, 1.0)
-    if hi_x <= lo_x:
-        hi_x = lo_x + 1.0
-    img = np.full((panel_height * len(keys), width, 3), WHITE, dtype=np.uint8)
-    for k, (key, (xs, ys)) in enumerate(zip(keys, series, strict=True)):
-        _panel(img, k * panel_height, panel_height, key, xs, ys, COLOURS[k % len(COLOURS)], (lo_x, hi_x), scale)
-        if k:
-            img[k * panel_height, :] = AXIS
-    draw_text(img, width - 8 - text_width("iteration", scale), img.shape[0] - (GLYPH_H + 2) * scale, "iteration",
-              TEXT, scale)
-    return write_png(out_png, img)
+    fig = _figure(width, panel_height * len(keys), layout="constrained")
+    axes = fig.subplots(len(keys), 1, sharex=True, squeeze=False)[:, 0]
+    for k, (ax, key) in enumerate(zip(axes, keys, strict=True)):
+        xs, ys = _series(records, key)
+        colour = COLOURS[k % len(COLOURS)]
+        if ys.size:
+            ax.plot(xs, ys, color=colour, linewidth=1.5, label=f"{key} (last {_short(ys[-1])})")
+            higher = key in HIGHER_IS_BETTER
+            best = int(np.argmax(ys) if higher else np.argmin(ys))
+            ax.plot(xs[best], ys[best], "o", color=colour, markersize=5,
+                    label=f"{'max' if higher else 'min'} {_short(ys[best])} at {xs[best]:.0f}")
+            if ys.min() > 0 and ys.max() >= LOG_SPAN * ys.min():
+                ax.set_yscale("log")
+            ax.legend(loc="best", fontsize="small", framealpha=0.8)
+        else:
+            ax.text(0.5, 0.5, f"{key}: no data", transform=ax.transAxes, ha="center", va="center", color="grey")
+        ax.set_ylabel(LABELS.get(key, key), fontsize="small")
+        ax.tick_params(labelsize="small")
+        ax.grid(True, which="major", alpha=0.35)
+    axes[-1].set_xlabel("iteration", fontsize="small")
+    fig.suptitle(title, fontsize="medium")
+    return fig
+
+
+def plot_curves(log_jsonl_path: str | os.PathLike, out_png: str | os.PathLike,
+                keys: Sequence[str] | str = ("loss", "psnr"), *, width: int = 640, panel_height: int = 200) -> Path:
+    """Plot ``keys`` of a training log (``log.jsonl``) against the iteration into ``out_png``: one panel per key
+    (see :func:`curves_figure`), ``width`` x ``panel_height * len(keys)`` pixels. Returns the PNG's path.
+
+    Raises PlotsUnavailable without matplotlib, ValueError for no key or a too small figure, OSError when the log
+    cannot be read."""
+    fig = curves_figure(read_log(log_jsonl_path), keys, width=width, panel_height=panel_height,
+                        title=f"training curves: {Path(log_jsonl_path).parent.name or Path(log_jsonl_path).name}")
+    return save_figure(fig, out_png)
+
+
+def training_plots(log_jsonl_path: str | os.PathLike, out_png: str | os.PathLike,
+                   keys: Sequence[str] | str = ("loss", "psnr")) -> dict:
+    """The training run's figures for its summary: ``{"curves": path}``, or ``{"skipped": reason}`` (logged as a
+    warning) when matplotlib is not installed, so that training still finishes and writes its numbers."""
+    try:
+        return {"curves": str(plot_curves(log_jsonl_path, out_png, keys))}
+    except PlotsUnavailable as e:
+        log.warning("training curves skipped: %s", e.reason)
+        return {"skipped": e.reason}
+
+
+# --------------------------------------------------------------------------------------------- contact sheet
+def _rgb8(img: np.ndarray) -> np.ndarray:
+    return (np.clip(np.asarray(img, dtype=np.float64), 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+
+
+def caption(index: int, psnr: float) -> str:
+    """A contact-sheet row's caption, e.g. "frame 12  PSNR 27.31 dB"."""
+    return f"frame {index}  PSNR {psnr:.2f} dB"
+
+
+def contact_sheet_figure(rows: Sequence[tuple[int, np.ndarray, np.ndarray, float]]) -> Figure:
+    """The figure :func:`write_contact_sheet` saves.
+
+    ``rows``: (frame index, prediction [H, W, 3], ground truth [H, W, 3], PSNR in dB), images in [0, 1]. Under the
+    column titles "prediction" and "ground truth", each row is captioned by :func:`caption` and shows the two
+    images side by side, pixel for pixel (enlarged by an integer factor to at least :data:`SHEET_MIN_WIDTH` pixels
+    wide, nearest neighbour), on a dark background. Raises ValueError for no row or images of different sizes,
+    PlotsUnavailable without matplotlib."""
+    if not rows:
+        raise ValueError("the contact sheet needs at least one frame")
+    h, w = np.asarray(rows[0][1]).shape[:2]
+    for index, pred, gt, _ in rows:
+        if np.asarray(pred).shape[:2] != (h, w) or np.asarray(gt).shape[:2] != (h, w):
+            raise ValueError(f"frame {index}: the images are not all {w} x {h}")
+    s = max(1, math.ceil(SHEET_MIN_WIDTH / w))
+    hs, ws = h * s, w * s
+    width = 2 * ws + 3 * SHEET_PAD
+    height = SHEET_HEADER + len(rows) * (SHEET_CAPTION + hs + SHEET_PAD)
+    fig = _figure(width, height, facecolor=SHEET_BACKGROUND)
+
+    def text(x: float, top: float, line: str, colour: str, size: float) -> None:  # pixels from the top-left
+        fig.text(x / width, 1.0 - top / height, line, color=colour, fontsize=size, ha="left", va="center")
+
+    text(SHEET_PAD, SHEET_HEADER / 2, "prediction", "#e6e6e6", 10)
+    text(2 * SHEET_PAD + ws, SHEET_HEADER / 2, "ground truth", "#e6e6e6", 10)
+    top = SHEET_HEADER
+    for index, pred, gt, value in rows:
+        text(SHEET_PAD, top + SHEET_CAPTION / 2, caption(index, value), "#ffd25a", 9)
+        top += SHEET_CAPTION
+        for c, img in enumerate((pred, gt)):
+            pixels = _rgb8(img)[..., :3].repeat(s, axis=0).repeat(s, axis=1)
+            fig.figimage(pixels, xo=SHEET_PAD + c * (ws + SHEET_PAD), yo=height - top - hs, origin="upper")
+        top += hs + SHEET_PAD
+    return fig
+
+
+def write_contact_sheet(rows: Sequence[tuple[int, np.ndarray, np.ndarray, float]], out_png) -> Path:
+    """Draw :func:`contact_sheet_figure` of ``rows`` into the PNG ``out_png``; returns its path. Raises
+    PlotsUnavailable without matplotlib."""
+    return save_figure(contact_sheet_figure(rows), out_png)

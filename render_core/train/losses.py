@@ -1,17 +1,18 @@
 """Training losses (docs/method.md section 5): L = (0.8 L1 + 0.2 D-SSIM) + 10 L_alpha + 100 L_reg.
 
-Images are [B, H, W, 3] (RGB) and [B, H, W] (alpha, mask) in [0, 1].
+Images are [B, H, W, 3] (RGB) and [B, H, W] (alpha, mask) in [0, 1]. The SSIM (zero-padded "same" borders here)
+and the PSNR are :mod:`render_core.evaluation.metrics`'s, the ones evaluation reports.
 """
 
 from __future__ import annotations
 
-import functools
-import math
 from dataclasses import dataclass
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor
+
+from ..evaluation.metrics import psnr as psnr  # re-exported: the training log's PSNR
+from ..evaluation.metrics import ssim
 
 RGB_L1, RGB_DSSIM = 0.8, 0.2
 ALPHA_WEIGHT = 10.0
@@ -22,44 +23,9 @@ def l1(pred: Tensor, target: Tensor) -> Tensor:
     return (pred - target).abs().mean()
 
 
-@functools.cache
-def _window(size: int, sigma: float) -> Tensor:
-    x = torch.arange(size, dtype=torch.float64) - (size - 1) / 2
-    g = torch.exp(-(x * x) / (2 * sigma * sigma))
-    g = g / g.sum()
-    return g.float()
-
-
-def ssim(pred: Tensor, target: Tensor, window: int = 11, sigma: float = 1.5) -> Tensor:
-    """Mean SSIM as 3DGS computes it: an 11x11 Gaussian window (sigma 1.5, separable), zero padding ("same"
-    size), C1 = 0.01^2, C2 = 0.03^2, averaged over pixels and channels."""
-    x = pred.permute(0, 3, 1, 2)
-    y = target.permute(0, 3, 1, 2)
-    c = x.shape[1]
-    g = _window(window, sigma).to(device=x.device, dtype=x.dtype)
-    pad = window // 2
-    gh = g.reshape(1, 1, 1, window).expand(c, 1, 1, window)
-    gv = g.reshape(1, 1, window, 1).expand(c, 1, window, 1)
-
-    # One pass over the five maps: x, y, x^2, y^2, xy stacked on channels.
-    stack = torch.cat([x, y, x * x, y * y, x * y], dim=1)
-    gh5, gv5 = gh.repeat(5, 1, 1, 1), gv.repeat(5, 1, 1, 1)
-    blurred = F.conv2d(F.conv2d(stack, gh5, padding=(0, pad), groups=5 * c), gv5, padding=(pad, 0), groups=5 * c)
-    mu_x, mu_y, xx, yy, xy = blurred.split(c, dim=1)
-    sxx, syy, sxy = xx - mu_x * mu_x, yy - mu_y * mu_y, xy - mu_x * mu_y
-    c1, c2 = 0.01**2, 0.03**2
-    s = ((2 * mu_x * mu_y + c1) * (2 * sxy + c2)) / ((mu_x * mu_x + mu_y * mu_y + c1) * (sxx + syy + c2))
-    return s.mean()
-
-
 def alpha_mse(alpha: Tensor, mask: Tensor) -> Tensor:
     """Accumulated opacity vs the foreground head mask, mean squared error (the reference code)."""
     return (alpha - mask).square().mean()
-
-
-def psnr(pred: Tensor, target: Tensor) -> float:
-    mse = float((pred.detach() - target).square().mean())
-    return 10 * math.log10(1.0 / mse) if mse > 0 else float("inf")
 
 
 @dataclass
@@ -111,7 +77,7 @@ def total_loss(rgb: Tensor, alpha: Tensor, target: Tensor, mask: Tensor, mouth_m
                cylinder: MouthCylinder) -> tuple[Tensor, dict[str, Tensor]]:
     """The training loss and its terms (l1, ssim (the SSIM, not D-SSIM), alpha, mouth)."""
     t_l1 = l1(rgb, target)
-    t_ssim = ssim(rgb, target)
+    t_ssim = ssim(rgb, target, padding="same")  # zero-padded borders, as 3DGS computes D-SSIM
     t_alpha = alpha_mse(alpha, mask)
     t_mouth = cylinder.loss(mouth_means)
     loss = RGB_L1 * t_l1 + RGB_DSSIM * (1 - t_ssim) + ALPHA_WEIGHT * t_alpha + MOUTH_WEIGHT * t_mouth
