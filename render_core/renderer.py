@@ -23,9 +23,9 @@ from torch import Tensor
 
 from .avatar import Avatar, Gaussians
 from .camera import Cameras
-from .deform import Frame, blend, shade, skin
+from .deform import Frame, blend, skin
 from .errors import ShapeError
-from .raster import RasterOutput, check_backend, gsplat_backend, native, render
+from .raster import RasterOutput, ShadedSplats, check_backend, gsplat_backend, native, render
 
 # Blendshape storage of a DeviceAvatar; compute is float32 whatever the storage.
 STORAGE_DTYPES: dict[str, torch.dtype] = {"fp32": torch.float32, "fp16": torch.float16, "bf16": torch.bfloat16}
@@ -195,10 +195,9 @@ class AvatarRenderer:
             clock.mark()
             splats = skin(dev.avatar, blended, frame)
             clock.mark()
-            colors = shade(splats, cams.centres)
+            shaded = ShadedSplats.from_splats(splats, cams)
             clock.mark()
-            out = gsplat_backend.rasterize(splats.means, splats.quats, splats.scales, splats.opacities, colors, cams,
-                                           bg, dev.raster_mode)
+            out = gsplat_backend.rasterize(shaded, cams, bg, dev.raster_mode)
             clock.mark()
         out.timings = clock.stages(("blend", "lbs", "shade", "raster"))
         return out

@@ -119,4 +119,4 @@ def emulate_cuda_backend(monkeypatch) -> None:
     monkeypatch.setattr(gsplat_backend, "device", lambda: torch.device("cpu"))
     monkeypatch.setattr(gsplat_backend, "device_name", lambda: "cpu (gsplat emulated)")
     monkeypatch.setattr(gsplat_backend, "available", lambda: True)
-    monkeypatch.setitem(raster.BACKENDS, "cuda", raster._cuda_backend)
+    monkeypatch.setitem(raster.BACKENDS, "cuda", gsplat_backend.rasterize)

@@ -4,14 +4,16 @@ a GPU)."""
 import torch
 
 from render_core.camera import orbit
-from render_core.deform import deform, shade
+from render_core.deform import deform
 from render_core.evaluation.metrics import psnr
+from render_core.raster import ShadedSplats
 from render_core.tools.bench import random_frames
 
 
 def random_scene(n=400, seed=0):
     """Gaussians around the origin (some behind the cameras' near plane, some nearly transparent), unnormalised
-    quaternions, two cameras with a size that is not a multiple of 16 and different backgrounds."""
+    quaternions, two cameras with a size that is not a multiple of 16 and different backgrounds: (splats, cameras,
+    backgrounds)."""
     g = torch.Generator().manual_seed(seed)
     means = (torch.rand(1, n, 3, generator=g) * 2 - 1) * torch.tensor([0.15, 0.12, 0.15])
     # On the front camera's axis, at and behind its near plane (camera z = 0.6 - z: 0.05 down to -0.02).
@@ -25,17 +27,16 @@ def random_scene(n=400, seed=0):
     colors = torch.rand(1, n, 3, generator=g)
     cams = orbit([0.0, 25.0], [0.0, -10.0], width=50, height=38)
     bg = torch.tensor([[0.2, 0.5, 0.9], [1.0, 0.3, 0.0]])
-    expand = [t.expand(2, *t.shape[1:]) for t in (means, quats, scales, opacities, colors)]
-    return (*expand, cams, bg)
+    splats = ShadedSplats(*(t.expand(2, *t.shape[1:]) for t in (means, quats, scales, opacities, colors)))
+    return splats, cams, bg
 
 
 def head_scene(avatar, seed=1):
+    """Two posed frames of ``avatar`` shaded for two views: (splats, cameras, background)."""
     g = torch.Generator().manual_seed(seed)
     splats = deform(avatar, random_frames(avatar, 2, g))
     cams = orbit([-20.0, 30.0], [5.0, -5.0], width=80, height=72)
-    colors = shade(splats, cams.centres)
-    bg = torch.tensor([0.1, 0.1, 0.1])
-    return splats.means, splats.quats, splats.scales, splats.opacities, colors, cams, bg
+    return ShadedSplats.from_splats(splats, cams), cams, torch.tensor([0.1, 0.1, 0.1])
 
 
 def assert_same_image(out, ref, db=45.0):

@@ -14,9 +14,17 @@ import torch
 from splat_scenes import assert_same_image, head_scene, psnr, random_scene
 
 from render_core.camera import orbit
-from render_core.deform import Frame, deform, shade, skin
+from render_core.deform import Frame, deform, skin
 from render_core.media.pixels import to_rgba8
-from render_core.raster import RasterOutput, backend_names, check_backend, gsplat_backend, reference, render
+from render_core.raster import (
+    RasterOutput,
+    ShadedSplats,
+    backend_names,
+    check_backend,
+    gsplat_backend,
+    reference,
+    render,
+)
 from render_core.renderer import AvatarRenderer, DeviceAvatar
 from render_core.tools.bench import bench_raster_backward, bench_render, framed_camera, random_frames
 from render_core.tools.synth import synth_avatar
@@ -56,10 +64,9 @@ def test_gsplat_extension_builds_and_is_1_5():
 @pytest.mark.parametrize("mode", ["classic", "antialiased"])
 @pytest.mark.parametrize("scene", ["random", "head"])
 def test_cuda_matches_the_reference_rasterizer(avatar, scene, mode):
-    means, quats, scales, opacities, colors, cams, bg = random_scene() if scene == "random" else head_scene(avatar)
-    ref = reference.rasterize(means, quats, scales, opacities, colors, cams, bg, mode)
-    out = gsplat_backend.rasterize(*(t.cuda() for t in (means, quats, scales, opacities, colors)),
-                                   cams.to(device="cuda"), bg.cuda(), mode)
+    shaded, cams, bg = random_scene() if scene == "random" else head_scene(avatar)
+    ref = reference.rasterize(shaded, cams, bg, mode)
+    out = gsplat_backend.rasterize(shaded.to(device="cuda"), cams.to(device="cuda"), bg.cuda(), mode)
     assert out.rgb.is_cuda and out.alpha.is_cuda and out.depth.is_cuda
     got = assert_same_image(_cpu(out), ref)
     print(f"cuda vs reference, {scene}, {mode}: PSNR rgb {got[0]:.1f}, alpha {got[1]:.1f}, depth {got[2]:.1f} dB")
@@ -74,15 +81,14 @@ def test_cuda_matches_the_reference_rasterizer(avatar, scene, mode):
 @pytest.mark.cuda
 @gpu
 def test_cuda_gradients_match_the_reference_autograd(avatar):
-    means, quats, scales, opacities, colors, cams, bg = head_scene(avatar)
+    shaded, cams, bg = head_scene(avatar)
     g = torch.Generator().manual_seed(2)
     w = torch.randn(2, cams.height, cams.width, 3, generator=g)
     v = torch.randn(2, cams.height, cams.width, generator=g)
 
     def grads(device, raster):
-        leaves = [t.detach().to(device).clone().requires_grad_(True)
-                  for t in (means, quats, scales, opacities, colors, bg)]
-        rgb, alpha = raster(*leaves[:5], cams.to(device=device), leaves[5], "classic")
+        leaves = [t.detach().to(device).clone().requires_grad_(True) for t in (*shaded.tensors().values(), bg)]
+        rgb, alpha = raster(ShadedSplats(*leaves[:5]), cams.to(device=device), leaves[5], "classic")
         ((rgb * w.to(device)).sum() + (alpha * v.to(device)).sum()).backward()
         return [t.grad.cpu().double().flatten() for t in leaves]
 
@@ -145,20 +151,20 @@ def test_low_precision_storage_against_fp32(precision, db):
 @pytest.mark.cuda
 @gpu
 def test_posed_gaussians_training_steps_lower_the_loss():
-    means, quats, scales, opacities, colors, cams, _ = random_scene(n=2000, seed=3)
+    scene, cams, _ = random_scene(n=2000, seed=3)
     dev = torch.device("cuda")
     cams = cams.to(device=dev)
-    target, _ = gsplat_backend.rasterize_differentiable(*(t.to(dev) for t in (means, quats, scales, opacities,
-                                                                              colors)), cams)
+    target, _ = gsplat_backend.rasterize_differentiable(scene.to(device=dev), cams)
     g = torch.Generator().manual_seed(9)
-    leaves = [(means[:1] + 0.01 * torch.randn(1, 2000, 3, generator=g)).to(dev).requires_grad_(True),
-              (colors[:1] * 0.5).to(dev).requires_grad_(True),
-              torch.logit(opacities[:1].clamp(0.02, 0.98) * 0.5).to(dev).requires_grad_(True)]
+    leaves = [(scene.means[:1] + 0.01 * torch.randn(1, 2000, 3, generator=g)).to(dev).requires_grad_(True),
+              (scene.colors[:1] * 0.5).to(dev).requires_grad_(True),
+              torch.logit(scene.opacities[:1].clamp(0.02, 0.98) * 0.5).to(dev).requires_grad_(True)]
     opt = torch.optim.Adam(leaves, lr=3e-3)
     losses = []
     for _ in range(30):
         m, c, o = (t.expand(2, *t.shape[1:]) for t in leaves)
-        rgb, _ = gsplat_backend.rasterize_differentiable(m, quats.to(dev), scales.to(dev), torch.sigmoid(o), c, cams)
+        splats = ShadedSplats(m, scene.quats.to(dev), scene.scales.to(dev), torch.sigmoid(o), c)
+        rgb, _ = gsplat_backend.rasterize_differentiable(splats, cams)
         loss = (rgb - target).abs().mean()
         opt.zero_grad()
         loss.backward()
@@ -214,8 +220,8 @@ def test_device_avatar_storage_against_the_fp32_pipeline(avatar, precision, db):
     if precision == "fp32":
         for key in ("means", "quats", "scales", "opacities", "sh", "sh_rotations"):
             assert torch.allclose(getattr(got, key), getattr(want, key), atol=1e-5), key
-    a = reference.rasterize(got.means, got.quats, got.scales, got.opacities, shade(got, cams.centres), cams)
-    b = reference.rasterize(want.means, want.quats, want.scales, want.opacities, shade(want, cams.centres), cams)
+    a = reference.rasterize(ShadedSplats.from_splats(got, cams), cams)
+    b = reference.rasterize(ShadedSplats.from_splats(want, cams), cams)
     assert psnr(a.rgb, b.rgb) >= db, psnr(a.rgb, b.rgb)
 
 

@@ -11,7 +11,7 @@ import torch
 
 from render_core.camera import orbit
 from render_core.deform import Frame, deform
-from render_core.raster import gsplat_backend, reference, render
+from render_core.raster import ShadedSplats, differentiable, gsplat_backend, reference, render
 from render_core.renderer import AvatarRenderer
 from render_core.tools.bench import bench_render, random_frames
 
@@ -39,7 +39,8 @@ def test_gsplat_conventions_match_the_reference_on_a_random_scene(monkeypatch, m
     assert int(both.sum()) > 100
     assert float((out.means2d[both] - ref.means2d[both]).abs().max()) < 1e-3
     # Both cull what is behind the near plane (camera z < 0.01); the ones just in front are drawn, and large.
-    z = (scene[5].R[0] @ scene[0][0, :8].T).T[:, 2] + scene[5].t[0, 2]
+    splats, cams, _ = scene
+    z = (cams.R[0] @ splats.means[0, :8].T).T[:, 2] + cams.t[0, 2]
     behind = z < 0.01
     assert 0 < int(behind.sum()) < 8
     assert not (out.radii[0, :8][behind] > 0).any() and not (ref.radii[0, :8][behind] > 0).any()
@@ -56,10 +57,10 @@ def test_gsplat_conventions_match_the_reference_on_a_head(monkeypatch, avatar, m
 
 def test_gsplat_conversion_is_differentiable(monkeypatch, avatar):
     """Gradients reach every input through the conversion (on the GPU gsplat's backward supplies them)."""
-    means, quats, scales, opacities, colors, cams, _ = head_scene(avatar)
-    leaves = [t.detach().clone().requires_grad_(True) for t in (means, quats, scales, opacities, colors)]
+    shaded, cams, _ = head_scene(avatar)
+    leaves = [t.detach().clone().requires_grad_(True) for t in shaded.tensors().values()]
     bg = torch.tensor([0.3, 0.2, 0.1], requires_grad=True)
-    out = gsplat_on_cpu(monkeypatch, *leaves, cams, bg, mode="classic")
+    out = gsplat_on_cpu(monkeypatch, ShadedSplats(*leaves), cams, bg, mode="classic")
     (out.rgb.sum() + out.alpha.sum()).backward()
     for t in (*leaves, bg):
         assert t.grad is not None and torch.isfinite(t.grad).all() and float(t.grad.abs().sum()) > 0
@@ -106,19 +107,18 @@ def test_bench_render_cuda_report_emulated(monkeypatch, avatar):
 
 
 def test_training_step_on_the_emulated_cuda_path_lowers_the_loss(monkeypatch):
-    from render_core.train.loop import rasterize
-
     gsplat_cpu.emulate_cuda_backend(monkeypatch)
-    means, quats, scales, opacities, colors, cams, _ = random_scene(n=120, seed=3)
-    target = reference.rasterize(means, quats, scales, opacities, colors, cams).rgb
+    rasterize = differentiable("cuda")
+    scene, cams, _ = random_scene(n=120, seed=3)
+    target = reference.rasterize(scene, cams).rgb
     g = torch.Generator().manual_seed(9)
-    leaves = [(means[:1] + 0.01 * torch.randn(1, 120, 3, generator=g)).requires_grad_(True),
-              (colors[:1] * 0.5).requires_grad_(True)]
+    leaves = [(scene.means[:1] + 0.01 * torch.randn(1, 120, 3, generator=g)).requires_grad_(True),
+              (scene.colors[:1] * 0.5).requires_grad_(True)]
     opt = torch.optim.Adam(leaves, lr=3e-3)
     losses = []
     for _ in range(6):
         m, c = (t.expand(2, *t.shape[1:]) for t in leaves)
-        rgb, alpha = rasterize(m, quats, scales, opacities, c, cams, "classic", device="cuda")
+        rgb, alpha = rasterize(ShadedSplats(m, scene.quats, scene.scales, scene.opacities, c), cams, None, "classic")
         loss = (rgb - target).abs().mean()
         opt.zero_grad()
         loss.backward()

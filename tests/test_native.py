@@ -18,7 +18,7 @@ from render_core.deform import Frame, deform
 from render_core.errors import FrameError, ShapeError
 from render_core.evaluation.metrics import psnr
 from render_core.media.pixels import to_uint8
-from render_core.raster import backend_names, default_backend, native, reference, render
+from render_core.raster import ShadedSplats, backend_names, default_backend, native, reference, render
 from render_core.renderer import AvatarRenderer
 from render_core.tools.bench import framed_camera, random_frames
 from render_core.tools.synth import synth_avatar
@@ -91,7 +91,9 @@ def random_scene(n: int, batch: int, seed: int) -> list[torch.Tensor]:
 
 
 def native_raster(args, cams, bg=None, mode="classic", **kw):
-    return native.rasterize(*args, cams, bg, mode, **kw)
+    """rgb, alpha, depth and timings of the native backend for the five tensors ``args``."""
+    out = native.rasterize(ShadedSplats(*args), cams, bg, mode, **kw)
+    return out.rgb, out.alpha, out.depth, out.timings
 
 
 def scene_cameras(width: int = 37, height: int = 29, focal: float = 60.0) -> Cameras:
@@ -170,7 +172,7 @@ def head_case(request, avatar, aa_avatar):
 def test_rasterize_random_scenes_match_reference(simd, mode):
     cams = scene_cameras()
     args = random_scene(300, 3, seed=1)
-    ref = _cached(("random", mode), lambda: reference.rasterize(*args, cams, BG3, mode))
+    ref = _cached(("random", mode), lambda: reference.rasterize(ShadedSplats(*args), cams, BG3, mode))
     assert float(ref.alpha.amax(dim=(1, 2)).min()) > 0.9  # every view sees the scene
     rgb, alpha, depth, timings = native_raster(args, cams, BG3, mode, simd=simd)
     assert timings["isa"] == simd
@@ -187,7 +189,7 @@ def test_rasterize_dense_overlap_off_centre_principal_point(simd):
     cams = Cameras(K[None], R, t, 48, 40)
     args = random_scene(600, 1, seed=5)
     bg = torch.tensor([1.0, 1.0, 1.0])
-    ref = _cached("dense", lambda: reference.rasterize(*args, cams, bg))
+    ref = _cached("dense", lambda: reference.rasterize(ShadedSplats(*args), cams, bg))
     assert float(ref.alpha.max()) > 0.999
     rgb, alpha, depth, _ = native_raster(args, cams, bg, simd=simd)
     assert_parity(rgb, alpha, depth, ref)
@@ -229,7 +231,7 @@ def test_equal_depths_composite_in_index_order(simd):
     colors = torch.rand(1, n, 3, generator=g)
     cams = simple_camera(48, 40, 60.0)
     args = _stack(means, quats, scales, opac, colors)
-    ref = reference.rasterize(*args, cams)
+    ref = reference.rasterize(ShadedSplats(*args), cams)
     rgb, alpha, depth, _ = native_raster(args, cams, simd=simd, threads=2)
     assert float(ref.alpha.mean()) > 0.5
     assert_parity(rgb, alpha, depth, ref)
@@ -249,7 +251,7 @@ def test_thin_needles_match_reference(simd):
     scales = torch.tensor([0.4, 1e-5, 1e-5]).expand(1, n, 3)
     args = _stack(means, quats, scales, torch.full((1, n), 0.95), torch.rand(1, n, 3, generator=g))
     cams = simple_camera(256, 256, 300.0)
-    ref = _cached("needles", lambda: reference.rasterize(*args, cams))
+    ref = _cached("needles", lambda: reference.rasterize(ShadedSplats(*args), cams))
     rgb, alpha, depth, _ = native_raster(args, cams, simd=simd)
     assert 0.05 < float((ref.alpha > 0.5).float().mean()) < 0.9
     assert_parity(rgb, alpha, depth, ref)
@@ -351,7 +353,7 @@ def test_rasterize_odd_sizes(size, simd):
     w, h = size
     cams = scene_cameras(w, h, focal=2.0 * max(w, h))
     args = random_scene(200, 3, seed=3)
-    ref = _cached(("odd", size), lambda: reference.rasterize(*args, cams, BG3))
+    ref = _cached(("odd", size), lambda: reference.rasterize(ShadedSplats(*args), cams, BG3))
     assert float(ref.alpha.max()) > 0.5
     rgb, alpha, depth, _ = native_raster(args, cams, BG3, simd=simd)
     assert rgb.shape == (3, h, w, 3) and alpha.shape == (3, h, w) and depth.shape == (3, h, w)
@@ -378,7 +380,7 @@ def test_rasterize_2048_square(simd):
     cams = orbit([0.0], width=2048, height=2048, focal=3000.0)
     args = random_scene(30, 1, seed=1)
     bg = torch.tensor([0.25, 0.5, 0.75])
-    ref = _cached("2048", lambda: reference.rasterize(*args, cams, bg))
+    ref = _cached("2048", lambda: reference.rasterize(ShadedSplats(*args), cams, bg))
     rgb, alpha, depth, _ = native_raster(args, cams, bg, simd=simd)
     assert rgb.shape == (1, 2048, 2048, 3) and alpha.shape == depth.shape == (1, 2048, 2048)
     empty = alpha == 0
@@ -421,7 +423,7 @@ def test_rasterize_empty_and_culled_scenes_give_background(case, simd):
     rgb, alpha, depth, _ = native_raster(_stack(means, quats, scales, opac, colors), cams, BG3, simd=simd)
     _assert_background(rgb, alpha, depth, BG3, 3, 12, 20)
     # The reference agrees (the scenes really are culled, not just rendered differently).
-    ref = reference.rasterize(means, quats, scales, opac, colors, cams, BG3)
+    ref = reference.rasterize(ShadedSplats(means, quats, scales, opac, colors), cams, BG3)
     assert torch.equal(ref.alpha, alpha)
 
 
@@ -483,7 +485,7 @@ def test_near_plane_and_close_huge_gaussians_match_reference(case, simd):
     args = _stack(*args)
     cams = simple_camera(40, 30, 50.0)
     bg = torch.tensor([0.9, 0.1, 0.4])
-    ref = reference.rasterize(*args, cams, bg)
+    ref = reference.rasterize(ShadedSplats(*args), cams, bg)
     rgb, alpha, depth, _ = native_raster(args, cams, bg, simd=simd)
     assert_parity(rgb, alpha, depth, ref)
     if case < n:  # the near Gaussian is culled (only the normal scene shows) or changes the image

@@ -17,9 +17,9 @@ import pytest
 import torch
 
 from render_core.camera import Cameras, intrinsics, orbit
-from render_core.deform import deform, shade
+from render_core.deform import deform
 from render_core.errors import ShapeError
-from render_core.raster import native, reference
+from render_core.raster import ShadedSplats, native, reference
 from render_core.tools.bench import framed_camera, random_frames
 from render_core.tools.synth import synth_avatar
 from tests.test_native import extreme_scene, simple_camera
@@ -79,11 +79,8 @@ def head_scene(gaussians: int, size: int, seed: int, mode: str):
     frame = random_frames(av, 2, torch.Generator().manual_seed(seed))
     focal = float(framed_camera(av, size).K[0, 0, 0])
     cams = orbit([0.0, 30.0], [0.0, -10.0], width=size, height=size, focal=focal)
-    splats = deform(av, frame)
-    colors = shade(splats, cams.centres)
-    args = [t.detach().float().contiguous() for t in (splats.means, splats.quats, splats.scales, splats.opacities,
-                                                      colors)]
-    return args, cams
+    shaded = ShadedSplats.from_splats(deform(av, frame), cams)
+    return [t.detach().float().contiguous() for t in shaded.tensors().values()], cams
 
 
 def loss_weights(b: int, h: int, w: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -95,7 +92,7 @@ def native_grads(args, cams, bg, mode, weights, **kw):
     """(rgb, alpha, gradients of every input and of the background) through the native backward."""
     leaves = [t.clone().requires_grad_(True) for t in args]
     bgl = bg.clone().requires_grad_(True)
-    rgb, alpha = native.rasterize_differentiable(*leaves, cams, bgl, mode, **kw)
+    rgb, alpha = native.rasterize_differentiable(ShadedSplats(*leaves), cams, bgl, mode, **kw)
     ((rgb * weights[0]).sum() + (alpha * weights[1]).sum()).backward()
     return rgb.detach(), alpha.detach(), [t.grad for t in (*leaves, bgl)]
 
@@ -103,7 +100,7 @@ def native_grads(args, cams, bg, mode, weights, **kw):
 def reference_grads(args, cams, bg, mode, weights):
     leaves = [t.double().requires_grad_(True) for t in args]
     bgl = bg.double().requires_grad_(True)
-    out = reference.rasterize(*leaves, cams, bgl, mode)
+    out = reference.rasterize(ShadedSplats(*leaves), cams, bgl, mode)
     ((out.rgb * weights[0].double()).sum() + (out.alpha * weights[1].double()).sum()).backward()
     return out, [t.grad for t in (*leaves, bgl)]
 
@@ -235,10 +232,10 @@ def test_no_gaussians():
 def test_forward_is_the_native_image(mode, simd):
     args = random_scene(200, 2, seed=11)
     cams = scene_cameras(33, 17, 50.0)
-    rgb, alpha = native.rasterize_differentiable(*args, cams, BG2, mode, simd=simd)
-    want = native.rasterize(*args, cams, BG2, mode, simd=simd)
+    rgb, alpha = native.rasterize_differentiable(ShadedSplats(*args), cams, BG2, mode, simd=simd)
+    want = native.rasterize(ShadedSplats(*args), cams, BG2, mode, simd=simd)
     assert rgb.dtype == alpha.dtype == torch.float32
-    assert torch.equal(rgb, want[0]) and torch.equal(alpha, want[1])
+    assert torch.equal(rgb, want.rgb) and torch.equal(alpha, want.alpha)
     assert float(alpha.max()) > 0.5
 
 
@@ -247,17 +244,17 @@ def test_no_grad_and_partly_differentiable_inputs():
     args = random_scene(80, 2, seed=2)
     cams = scene_cameras(24, 24, 40.0)
     with torch.no_grad():
-        rgb, alpha = native.rasterize_differentiable(*args, cams)
+        rgb, alpha = native.rasterize_differentiable(ShadedSplats(*args), cams)
     assert not rgb.requires_grad and not alpha.requires_grad
     means = args[0].clone().requires_grad_(True)
     colors = args[4].clone().requires_grad_(True)
-    rgb, alpha = native.rasterize_differentiable(means, args[1], args[2], args[3], colors, cams)
+    rgb, alpha = native.rasterize_differentiable(ShadedSplats(means, args[1], args[2], args[3], colors), cams)
     (rgb.sum() + alpha.sum()).backward()
     assert means.grad is not None and colors.grad is not None
     assert float(means.grad.abs().sum()) > 0 and float(colors.grad.abs().sum()) > 0
     # Only alpha used: the colour gradient is exactly zero, the others are not.
     means.grad = colors.grad = None
-    _, alpha = native.rasterize_differentiable(means, args[1], args[2], args[3], colors, cams)
+    _, alpha = native.rasterize_differentiable(ShadedSplats(means, args[1], args[2], args[3], colors), cams)
     alpha.sum().backward()
     assert torch.equal(colors.grad, torch.zeros_like(colors)) and float(means.grad.abs().sum()) > 0
 
@@ -275,11 +272,11 @@ def test_float64_expanded_inputs_and_background_shapes(bg_kind):
     bg = {"none": None, "shared": torch.tensor([0.3, 0.6, 0.1], dtype=torch.float64), "per_camera": BG2}[bg_kind]
     leaves = [t.double().requires_grad_(True) for t in one]
     bgl = None if bg is None else bg.clone().requires_grad_(True)
-    rgb, alpha = native.rasterize_differentiable(*[t.expand(2, *t.shape[1:]) for t in leaves], cams, bgl)
+    rgb, alpha = native.rasterize_differentiable(ShadedSplats(*[t.expand(2, *t.shape[1:]) for t in leaves]), cams, bgl)
     ((rgb * weights[0]).sum() + (alpha * weights[1]).sum()).backward()
     ref_leaves = [t.double().requires_grad_(True) for t in one]
     ref_bg = None if bg is None else bg.double().clone().requires_grad_(True)
-    out = reference.rasterize(*[t.expand(2, *t.shape[1:]) for t in ref_leaves], cams, ref_bg)
+    out = reference.rasterize(ShadedSplats(*[t.expand(2, *t.shape[1:]) for t in ref_leaves]), cams, ref_bg)
     ((out.rgb * weights[0].double()).sum() + (out.alpha * weights[1].double()).sum()).backward()
     got = [t.grad for t in leaves]
     want = [t.grad for t in ref_leaves]
@@ -299,7 +296,7 @@ def test_retained_graph_gives_the_same_gradients_twice():
     args = random_scene(60, 2, seed=8)
     cams = scene_cameras(24, 24, 40.0)
     means = args[0].clone().requires_grad_(True)
-    rgb, alpha = native.rasterize_differentiable(means, *args[1:], cams)
+    rgb, alpha = native.rasterize_differentiable(ShadedSplats(means, *args[1:]), cams)
     loss = rgb.square().sum() + alpha.sum()
     (first,) = torch.autograd.grad(loss, means, retain_graph=True)
     (second,) = torch.autograd.grad(loss, means)
@@ -310,7 +307,7 @@ def test_in_place_modification_before_backward_is_detected():
     args = random_scene(30, 2, seed=8)
     means = args[0].clone().requires_grad_(True)
     work = means * 1.0  # a float32 contiguous non-leaf: saved as is
-    rgb, _ = native.rasterize_differentiable(work, *args[1:], scene_cameras(16, 16, 30.0))
+    rgb, _ = native.rasterize_differentiable(ShadedSplats(work, *args[1:]), scene_cameras(16, 16, 30.0))
     with torch.no_grad():
         work.add_(0.01)
     with pytest.raises(RuntimeError, match="modified by an inplace operation"):
@@ -330,16 +327,17 @@ def test_non_finite_inputs_raise_the_forward_error(field, value):
     bad[field].requires_grad_(True)
     cams = scene_cameras(16, 12, 20.0)
     with pytest.raises(ShapeError) as err:
-        native.rasterize_differentiable(*bad[:5], cams, bad[5])
+        native.rasterize_differentiable(ShadedSplats(*bad[:5]), cams, bad[5])
     with pytest.raises(ShapeError) as forward_err:
-        native.rasterize(*[t.detach() for t in bad[:5]], cams, bad[5].detach())
+        native.rasterize(ShadedSplats(*[t.detach() for t in bad[:5]]), cams, bad[5].detach())
     assert str(err.value) == str(forward_err.value)
     assert "finite" in str(err.value) and NAMES[field] in str(err.value)
 
 
 def test_rejects_unknown_mode():
     with pytest.raises(ValueError, match="classic"):
-        native.rasterize_differentiable(*random_scene(4, 1, seed=0), scene_cameras(8, 8, 10.0, batch=1), None, "x")
+        native.rasterize_differentiable(ShadedSplats(*random_scene(4, 1, seed=0)), scene_cameras(8, 8, 10.0, batch=1),
+                                        None, "x")
 
 
 # ------------------------------------------------------------------------------------------------ culling

@@ -8,6 +8,7 @@ import torch
 
 from render_core.camera import Cameras, intrinsics, look_at, orbit
 from render_core.raster.reference import rasterize
+from render_core.raster.splats import ShadedSplats
 
 
 def _quat_to_matrix(q):
@@ -97,9 +98,8 @@ def _scene(n, seed, dtype=torch.float64):
 def _check(cams, mode, n=60, seed=0, bg=(0.2, 0.3, 0.4)):
     means, quats, scales, opac, colors = _scene(n, seed)
     background = torch.tensor(bg, dtype=torch.float64)
-    out = rasterize(means[None].expand(len(cams), -1, -1), quats[None].expand(len(cams), -1, -1),
-                    scales[None].expand(len(cams), -1, -1), opac[None].expand(len(cams), -1),
-                    colors[None].expand(len(cams), -1, -1), cams.to(torch.float64), background, mode)
+    splats = ShadedSplats(*(t[None].expand(len(cams), *t.shape) for t in (means, quats, scales, opac, colors)))
+    out = rasterize(splats, cams.to(torch.float64), background, mode)
     for b in range(len(cams)):
         rgb, alpha, depth = brute_force(
             means.numpy(), quats.numpy(), scales.numpy(), opac.numpy(), colors.numpy(),
@@ -130,8 +130,8 @@ def test_matches_brute_force_with_off_centre_principal_point_and_dense_overlap()
 def test_autograd_path_renders_the_same_image():
     cams = orbit([0.0, 25.0], width=33, height=21, focal=50.0)
     args = [t[None].expand(2, *t.shape).clone() for t in _scene(80, 2, torch.float32)]
-    plain = rasterize(*args, cams, torch.tensor([0.5, 0.5, 0.5]))
-    graded = rasterize(*[t.requires_grad_() for t in args], cams, torch.tensor([0.5, 0.5, 0.5]))
+    plain = rasterize(ShadedSplats(*args), cams, torch.tensor([0.5, 0.5, 0.5]))
+    graded = rasterize(ShadedSplats(*[t.requires_grad_() for t in args]), cams, torch.tensor([0.5, 0.5, 0.5]))
     assert graded.rgb.requires_grad
     for a, b in ((plain.rgb, graded.rgb), (plain.alpha, graded.alpha), (plain.depth, graded.depth)):
         torch.testing.assert_close(a, b.detach(), atol=1e-6, rtol=0)
@@ -143,8 +143,9 @@ def test_empty_and_fully_culled_scenes_give_background():
     for n in (0, 3):
         means = torch.zeros(1, n, 3)
         means[..., 2] = 5.0  # behind the camera
-        out = rasterize(means, torch.ones(1, n, 4), torch.ones(1, n, 3) * 0.01, torch.ones(1, n) * 0.5,
-                        torch.ones(1, n, 3), cams, bg)
+        splats = ShadedSplats(means, torch.ones(1, n, 4), torch.ones(1, n, 3) * 0.01, torch.ones(1, n) * 0.5,
+                              torch.ones(1, n, 3))
+        out = rasterize(splats, cams, bg)
         assert torch.equal(out.rgb, bg.expand(1, 12, 20, 3))
         assert torch.equal(out.alpha, torch.zeros(1, 12, 20))
 
@@ -161,7 +162,7 @@ def test_gradcheck_tiny_float64_scene():
     bg = torch.tensor([0.3, 0.2, 0.1], dtype=torch.float64)
 
     def f(m, q, s, o, c):
-        out = rasterize(m, q, s, o, c, cams, bg)
+        out = rasterize(ShadedSplats(m, q, s, o, c), cams, bg)
         return out.rgb, out.alpha, out.depth
 
     assert float(f(means, quats, scales, opac, colors)[1].detach().max()) > 0.3

@@ -1,9 +1,11 @@
 """Rasterizer backends behind one entry point, :func:`render`.
 
-Every backend implements docs/method.md section 9 with the same signature and semantics: ``reference`` (pure torch,
-differentiable; the oracle the others are tested against), ``native`` (the C++ CPU backend, the default when
-it is built) and ``cuda`` (gsplat 1.5.x's CUDA kernels, differentiable; registered where torch sees a CUDA device
-and gsplat is installed). Asking for a backend that is not available here is an error that says why.
+Every backend implements docs/method.md section 9 with the same signature and semantics
+(:mod:`render_core.raster.splats`: it takes :class:`ShadedSplats` and returns a :class:`RasterOutput`):
+``reference`` (pure torch, differentiable; the oracle the others are tested against), ``native`` (the C++ CPU
+backend, the default when it is built) and ``cuda`` (gsplat 1.5.x's CUDA kernels, differentiable; registered where
+torch sees a CUDA device and gsplat is installed). Asking for a backend that is not available here is an error that
+says why.
 """
 
 from __future__ import annotations
@@ -14,47 +16,22 @@ import torch
 from torch import Tensor
 
 from ..camera import Cameras
-from ..deform import Splats, shade
+from ..deform import Splats
 from ..errors import ShapeError
 from . import gsplat_backend, native, reference
-from .reference import RasterOutput
+from .splats import RasterOutput, ShadedSplats
 
-__all__ = ["BACKENDS", "KNOWN_BACKENDS", "RasterOutput", "render", "backend_names", "default_backend",
-           "check_backend", "unavailable_reason"]
+__all__ = ["BACKENDS", "KNOWN_BACKENDS", "RasterOutput", "ShadedSplats", "render", "backend_names", "default_backend",
+           "check_backend", "unavailable_reason", "DIFFERENTIABLE", "differentiable"]
 
-Backend = Callable[[Splats, Cameras, Tensor | None, str], RasterOutput]
-
-
-def _reference_backend(splats: Splats, cameras: Cameras, background: Tensor | None, mode: str) -> RasterOutput:
-    colors = shade(splats, cameras.centres.to(splats.means.dtype))
-    return reference.rasterize(splats.means, splats.quats, splats.scales, splats.opacities, colors, cameras,
-                               background, mode)
-
-
-def _native_backend(splats: Splats, cameras: Cameras, background: Tensor | None, mode: str) -> RasterOutput:
-    colors = shade(splats, cameras.centres.to(splats.means.dtype))
-    rgb, alpha, depth, timings = native.rasterize(splats.means, splats.quats, splats.scales, splats.opacities,
-                                                  colors, cameras, background, mode)
-    return RasterOutput(rgb, alpha, depth, timings=timings)
-
-
-def _cuda_backend(splats: Splats, cameras: Cameras, background: Tensor | None, mode: str) -> RasterOutput:
-    """Shade and splat on the GPU (CPU inputs are moved there and the outputs moved back)."""
-    home = splats.means.device
-    gpu = home if home.type == "cuda" else gsplat_backend.device()
-    splats, cameras = splats.to(device=gpu), cameras.to(device=gpu)
-    colors = shade(splats, cameras.centres.to(splats.means.dtype))
-    out = gsplat_backend.rasterize(splats.means, splats.quats, splats.scales, splats.opacities, colors, cameras,
-                                   background, mode)
-    return gsplat_backend.moved(out, home)
-
+Backend = Callable[[ShadedSplats, Cameras, Tensor | None, str], RasterOutput]
 
 KNOWN_BACKENDS: tuple[str, ...] = ("cuda", "native", "reference")
-BACKENDS: dict[str, Backend] = {"reference": _reference_backend}
+BACKENDS: dict[str, Backend] = {"reference": reference.rasterize}
 if native.available():
-    BACKENDS["native"] = _native_backend
+    BACKENDS["native"] = native.rasterize
 if gsplat_backend.available():
-    BACKENDS["cuda"] = _cuda_backend
+    BACKENDS["cuda"] = gsplat_backend.rasterize
 
 
 def backend_names() -> list[str]:
@@ -86,6 +63,34 @@ def check_backend(name: str | None) -> str:
                              f"{available}")
         raise ValueError(f"unknown backend {name!r}; available: {available}")
     return name
+
+
+# The differentiable rasterization step of training, per backend: rgb [B, H, W, 3] and alpha [B, H, W] on the
+# background, differentiable w.r.t. the posed splats and their colours (``threads``: the CPU's, where it applies).
+Differentiable = Callable[..., tuple[Tensor, Tensor]]
+
+
+def _native_differentiable(splats: ShadedSplats, cameras: Cameras, background: Tensor | None = None,
+                           mode: str = "classic", *, threads: int = 0) -> tuple[Tensor, Tensor]:
+    return native.rasterize_differentiable(splats, cameras, background, mode, threads=threads)
+
+
+def _cuda_differentiable(splats: ShadedSplats, cameras: Cameras, background: Tensor | None = None,
+                         mode: str = "classic", *, threads: int = 0) -> tuple[Tensor, Tensor]:
+    return gsplat_backend.rasterize_differentiable(splats, cameras, background, mode)
+
+
+DIFFERENTIABLE: dict[str, Differentiable] = {"native": _native_differentiable, "cuda": _cuda_differentiable}
+
+
+def differentiable(name: str) -> Differentiable:
+    """The differentiable rasterization step of backend ``name`` (for training); the errors of
+    :func:`check_backend` where it cannot run here, a ValueError for a backend without one."""
+    name = check_backend(name)
+    if name not in DIFFERENTIABLE:
+        raise ValueError(f"backend {name!r} has no differentiable step for training; those that have: "
+                         f"{', '.join(sorted(DIFFERENTIABLE))}")
+    return DIFFERENTIABLE[name]
 
 
 def render(
@@ -120,4 +125,9 @@ def render(
             raise ShapeError(f"{bs} splat sets cannot pair with {bc} cameras", field="cameras")
     if background is not None and not torch.isfinite(background).all():
         raise ShapeError("must be finite", field="background")
-    return BACKENDS[backend](splats, cameras, background, mode)
+    home = splats.means.device
+    if backend == "cuda":  # shading runs on the GPU too; the outputs come back to the splats' device
+        gpu = home if home.type == "cuda" else gsplat_backend.device()
+        splats, cameras = splats.to(device=gpu), cameras.to(device=gpu)
+    out = BACKENDS[backend](ShadedSplats.from_splats(splats, cameras), cameras, background, mode)
+    return gsplat_backend.moved(out, home)

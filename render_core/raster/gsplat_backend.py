@@ -3,18 +3,18 @@
 docs/method.md section 9 *is* gsplat 1.5.3's "classic" rasterization (and its "antialiased" mode), so this backend only
 translates conventions; it adds no splatting code of its own. Two pieces:
 
-- :func:`gsplat_arguments` turns our posed splats and :class:`~render_core.camera.Cameras` into the keyword
-  arguments of ``gsplat.rasterization`` and :func:`from_gsplat` turns its outputs into a :class:`RasterOutput`.
-  Both are plain torch and device-agnostic: the CUDA path uses them, and the tests run the very same conversion
-  through gsplat's ``rasterization`` on the CPU (its projection and tile binning replaced by gsplat's pure-torch
-  twins) against the reference rasterizer, so the conventions are checked on machines without a GPU too.
+- :func:`gsplat_arguments` turns our :class:`~render_core.raster.splats.ShadedSplats` and
+  :class:`~render_core.camera.Cameras` into the keyword arguments of ``gsplat.rasterization`` and
+  :func:`from_gsplat` turns its outputs into a :class:`RasterOutput`. Both are plain torch and device-agnostic:
+  the CUDA path uses them, and the tests run the very same conversion through gsplat's ``rasterization`` on the
+  CPU (its projection and tile binning replaced by gsplat's pure-torch twins) against the reference rasterizer,
+  so the conventions are checked on machines without a GPU too.
 - :func:`rasterize` / :func:`rasterize_differentiable`: the CUDA path (gsplat's autograd gives the backward).
 
-Conventions carried over (see :mod:`render_core.raster.reference`): world-to-camera ``[R | t]`` as 4x4 ``viewmats``,
-K in pixels, quaternions wxyz, linear scales, opacities in [0, 1], colours evaluated beforehand (``sh_degree``
-None), near plane 0.01, 0.3 px blur, 16 px tiles, unpacked layout, and ``render_mode="RGB+D"`` whose fourth channel
-is the alpha-composited camera depth (its background is 0). B splat sets meet B cameras as gsplat's batch
-dimension with one camera each (``viewmats [B, 1, 4, 4]``).
+Conventions carried over (see :mod:`render_core.raster.splats`): world-to-camera ``[R | t]`` as 4x4 ``viewmats``,
+K in pixels, colours evaluated beforehand (``sh_degree`` None), near plane 0.01, 0.3 px blur, 16 px tiles, unpacked
+layout, and ``render_mode="RGB+D"`` whose fourth channel is the alpha-composited camera depth (its background is
+0). B splat sets meet B cameras as gsplat's batch dimension with one camera each (``viewmats [B, 1, 4, 4]``).
 
 Availability: the backend is registered when torch sees a CUDA device and gsplat 1.5.x imports
 (``pip install --no-deps 'gsplat>=1.5,<1.6'``; its wheel is pure Python and compiles its CUDA sources with the
@@ -31,7 +31,8 @@ from torch import Tensor
 
 from ..avatar import check_raster_mode
 from ..camera import Cameras
-from .reference import EPS2D, NEAR, TILE, RasterOutput
+from .reference import EPS2D, NEAR, TILE
+from .splats import RasterOutput, ShadedSplats
 
 GSPLAT_SPEC = "gsplat>=1.5,<1.6"
 FAR = 1e10  # gsplat's default far plane (docs/method.md has none)
@@ -104,20 +105,10 @@ def viewmats(cameras: Cameras, device: torch.device | str | None = None) -> Tens
     return out
 
 
-def gsplat_arguments(
-    means: Tensor,  # [B, N, 3]
-    quats: Tensor,  # [B, N, 4] wxyz
-    scales: Tensor,  # [B, N, 3]
-    opacities: Tensor,  # [B, N]
-    colors: Tensor,  # [B, N, 3]
-    cameras: Cameras,  # B cameras
-    background: Tensor | None = None,  # [B, 3] or [3]; default black
-    mode: str = "classic",
-    *,
-    device: torch.device | str | None = None,
-) -> dict:
+def gsplat_arguments(splats: ShadedSplats, cameras: Cameras, background: Tensor | None = None,
+                     mode: str = "classic", *, device: torch.device | str | None = None) -> dict:
     """Keyword arguments of ``gsplat.rasterization`` that render docs/method.md section 9 as
-    :func:`render_core.raster.reference.rasterize` does (float32, on ``device``, default: that of ``means``).
+    :func:`render_core.raster.reference.rasterize` does (float32, on ``device``, default: that of the splats).
 
     gsplat's batch dimension carries the B splat sets, each seen by its one camera; colours are already
     evaluated (``sh_degree=None``); ``render_mode="RGB+D"`` appends the alpha-composited depth as a fourth
@@ -125,18 +116,16 @@ def gsplat_arguments(
 
     Example::
 
-        colors, alphas, meta = gsplat.rasterization(**gsplat_arguments(m, q, s, o, c, cams, mode="classic"))
+        colors, alphas, meta = gsplat.rasterization(**gsplat_arguments(splats, cams, mode="classic"))
         out = from_gsplat(colors, alphas, meta)
     """
     check_raster_mode(mode)
-    B, N = means.shape[:2]
-    assert means.shape == (B, N, 3), means.shape
-    assert quats.shape == (B, N, 4), quats.shape
-    assert scales.shape == (B, N, 3), scales.shape
-    assert opacities.shape == (B, N), opacities.shape
-    assert colors.shape == (B, N, 3), colors.shape
+    B, N = splats.means.shape[:2]
+    want = {"means": (B, N, 3), "quats": (B, N, 4), "scales": (B, N, 3), "opacities": (B, N), "colors": (B, N, 3)}
+    for name, t in splats.tensors().items():
+        assert t.shape == want[name], (name, t.shape)
     assert len(cameras) == B, (len(cameras), B)
-    device = means.device if device is None else torch.device(device)
+    device = splats.means.device if device is None else torch.device(device)
 
     def f32(t: Tensor) -> Tensor:
         return t.to(device=device, dtype=torch.float32)
@@ -146,7 +135,7 @@ def gsplat_arguments(
     else:
         bg = f32(background).reshape(-1, 1, 3).expand(B, 1, 3)
     return dict(
-        means=f32(means), quats=f32(quats), scales=f32(scales), opacities=f32(opacities), colors=f32(colors),
+        **splats.to(torch.float32, device).tensors(),
         viewmats=viewmats(cameras, device)[:, None], Ks=f32(cameras.K)[:, None],
         width=cameras.width, height=cameras.height, near_plane=NEAR, far_plane=FAR, radius_clip=0.0, eps2d=EPS2D,
         sh_degree=None, packed=PACKED, tile_size=TILE, backgrounds=bg, render_mode="RGB+D", rasterize_mode=mode,
@@ -176,41 +165,22 @@ def moved(out: RasterOutput, device: torch.device) -> RasterOutput:
                         None if out.radii is None else out.radii.to(device), out.timings)
 
 
-def rasterize(
-    means: Tensor,  # [B, N, 3]
-    quats: Tensor,  # [B, N, 4] wxyz
-    scales: Tensor,  # [B, N, 3]
-    opacities: Tensor,  # [B, N]
-    colors: Tensor,  # [B, N, 3]
-    cameras: Cameras,  # B cameras
-    background: Tensor | None = None,  # [B, 3] or [3]
-    mode: str = "classic",
-) -> RasterOutput:
-    """Splat posed Gaussians with gsplat's CUDA kernels exactly as :func:`render_core.raster.reference.rasterize`.
-
-    Inputs on the CPU are moved to the GPU and the outputs moved back (the outputs follow ``means``' device);
-    inputs already on the GPU stay there. Differentiable (gsplat's backward) with respect to means, quats,
-    scales, opacities, colours and the background. Float32 compute whatever the input dtypes.
-    """
+def rasterize(splats: ShadedSplats, cameras: Cameras, background: Tensor | None = None,
+              mode: str = "classic") -> RasterOutput:
+    """Splat ``splats`` for ``cameras`` as every backend does (:mod:`render_core.raster.splats`) with gsplat's CUDA
+    kernels, in float32 whatever the input dtypes; differentiable (gsplat's backward) with respect to the splats'
+    tensors and the background. Splats on the CPU are moved to the GPU and the outputs moved back; splats
+    already on the GPU stay there."""
     rasterization = _rasterization()
-    home = means.device
+    home = splats.means.device
     gpu = home if home.type == "cuda" else device()
-    colors_out, alphas, meta = rasterization(**gsplat_arguments(means, quats, scales, opacities, colors, cameras,
-                                                                background, mode, device=gpu))
-    return moved(from_gsplat(colors_out, alphas, meta), home)
+    colors, alphas, meta = rasterization(**gsplat_arguments(splats, cameras, background, mode, device=gpu))
+    return moved(from_gsplat(colors, alphas, meta), home)
 
 
-def rasterize_differentiable(
-    means: Tensor,  # [B, N, 3]
-    quats: Tensor,  # [B, N, 4] wxyz
-    scales: Tensor,  # [B, N, 3]
-    opacities: Tensor,  # [B, N]
-    colors: Tensor,  # [B, N, 3]
-    cameras: Cameras,  # B cameras
-    background: Tensor | None = None,  # [B, 3] or [3]
-    mode: str = "classic",
-) -> tuple[Tensor, Tensor]:
+def rasterize_differentiable(splats: ShadedSplats, cameras: Cameras, background: Tensor | None = None,
+                             mode: str = "classic") -> tuple[Tensor, Tensor]:
     """rgb [B, H, W, 3] and alpha [B, H, W] of :func:`rasterize`: the CUDA twin of
-    :func:`render_core.raster.native.rasterize_differentiable` (the same signature less the CPU options)."""
-    out = rasterize(means, quats, scales, opacities, colors, cameras, background, mode)
+    :func:`render_core.raster.native.rasterize_differentiable` (the same arguments less the CPU options)."""
+    out = rasterize(splats, cameras, background, mode)
     return out.rgb, out.alpha

@@ -3,8 +3,9 @@ kernels chosen at run time. ``BLENDSPLAT_SIMD=scalar|avx2|avx512`` forces one pa
 error naming the available ones).
 
 Two entry points share the kernels:
-  - :func:`rasterize`: posed Gaussians with evaluated colours (the ``render()`` backend, tested against the
-    reference rasterizer);
+  - :func:`rasterize` (and :func:`rasterize_differentiable`, with a C++ backward): shaded splats, as every backend
+    takes them (:mod:`render_core.raster.splats`; the ``render()`` backend, tested against the reference
+    rasterizer);
   - :class:`NativeAvatar`: an avatar packed once for streaming reads - neutral rows and the (Gaussian,
     blendshape) pairs that are not zero, CSR by Gaussian, in fp32 or fp16 - rendered by the fused per-frame
     pipeline (blend, pose correctives, eyelids, LBS, SH colour, projection, tile binning, depth sort,
@@ -26,6 +27,7 @@ from torch import Tensor
 from ..avatar import Avatar, Gaussians, check_raster_mode, sh_coeff_count
 from ..camera import Cameras
 from ..errors import ShapeError
+from .splats import RasterOutput, ShadedSplats
 
 try:
     from .. import _native
@@ -129,44 +131,32 @@ def _camera_arrays(cameras: Cameras) -> tuple[np.ndarray, np.ndarray, np.ndarray
     return _np(cameras.K), _np(cameras.R), _np(cameras.t)
 
 
-def _check_posed(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, colors: Tensor, cameras: Cameras,
-                 background: Tensor | None, mode: str) -> None:
+def _check_posed(splats: ShadedSplats, cameras: Cameras, background: Tensor | None, mode: str) -> None:
     """What both rasterize entry points check before the native code runs (it checks the shapes)."""
     _require()
     check_raster_mode(mode)
-    _check_finite(means=means, quats=quats, scales=scales, opacities=opacities, colors=colors, background=background)
+    _check_finite(**splats.tensors(), background=background)
     _check_cameras(cameras)
 
 
-def rasterize(
-    means: Tensor,  # [B, N, 3]
-    quats: Tensor,  # [B, N, 4] wxyz
-    scales: Tensor,  # [B, N, 3]
-    opacities: Tensor,  # [B, N]
-    colors: Tensor,  # [B, N, 3]
-    cameras: Cameras,  # B cameras
-    background: Tensor | None = None,  # [B, 3] or [3]
-    mode: str = "classic",
-    *,
-    simd: str | None = None,
-    threads: int = 0,
-) -> tuple[Tensor, Tensor, Tensor, dict]:
-    """Splat posed Gaussians exactly as :func:`render_core.raster.reference.rasterize` (docs/method.md section 9).
-
-    Returns rgb [B, H, W, 3], alpha [B, H, W], depth [B, H, W] and the stage timings. No autograd.
-    """
-    _check_posed(means, quats, scales, opacities, colors, cameras, background, mode)
-    b = means.shape[0]
+def rasterize(splats: ShadedSplats, cameras: Cameras, background: Tensor | None = None, mode: str = "classic", *,
+              simd: str | None = None, threads: int = 0) -> RasterOutput:
+    """Splat ``splats`` for ``cameras`` as every backend does (:mod:`render_core.raster.splats`), in float32 with
+    the stage timings; no autograd. ``simd``: the SIMD path (:func:`simd_choice`); ``threads`` 0: all."""
+    _check_posed(splats, cameras, background, mode)
+    b = splats.means.shape[0]
     rgb, alpha, depth = _outputs(b, cameras.height, cameras.width)
     K, R, t = _camera_arrays(cameras)
-    timings = _native.rasterize(_np(means), _np(quats), _np(scales), _np(opacities), _np(colors), K, R, t,
-                                cameras.width, cameras.height, mode == "antialiased", _background(background, b),
-                                rgb, alpha, depth, simd_choice(simd), threads)
-    return torch.from_numpy(rgb), torch.from_numpy(alpha), torch.from_numpy(depth), dict(timings)
+    timings = _native.rasterize(*map(_np, splats.tensors().values()), K, R, t, cameras.width, cameras.height,
+                                mode == "antialiased", _background(background, b), rgb, alpha, depth,
+                                simd_choice(simd), threads)
+    return RasterOutput(torch.from_numpy(rgb), torch.from_numpy(alpha), torch.from_numpy(depth),
+                        timings=dict(timings))
 
 
 class _Rasterize(torch.autograd.Function):
-    """The native forward and backward of :func:`rasterize` (float32 in C++; see rasterize_differentiable)."""
+    """The native forward and backward of :func:`rasterize` (float32 in C++; see rasterize_differentiable), taking
+    the splats' five tensors one by one (autograd tracks tensor arguments)."""
 
     @staticmethod
     def forward(ctx, means, quats, scales, opacities, colors, background, cameras, mode, simd, threads):
@@ -208,21 +198,11 @@ class _Rasterize(torch.autograd.Function):
         return (*grads, grad_bg, None, None, None, None)
 
 
-def rasterize_differentiable(
-    means: Tensor,  # [B, N, 3]
-    quats: Tensor,  # [B, N, 4] wxyz
-    scales: Tensor,  # [B, N, 3]
-    opacities: Tensor,  # [B, N]
-    colors: Tensor,  # [B, N, 3]
-    cameras: Cameras,  # B cameras
-    background: Tensor | None = None,  # [B, 3] or [3]
-    mode: str = "classic",
-    *,
-    simd: str | None = None,
-    threads: int = 0,
-) -> tuple[Tensor, Tensor]:
+def rasterize_differentiable(splats: ShadedSplats, cameras: Cameras, background: Tensor | None = None,
+                             mode: str = "classic", *, simd: str | None = None,
+                             threads: int = 0) -> tuple[Tensor, Tensor]:
     """:func:`rasterize` with a native backward: rgb [B, H, W, 3] and alpha [B, H, W] (float32), differentiable
-    w.r.t. means, quats, scales, opacities, colours and the background (depth is not returned: not differentiable).
+    w.r.t. the splats' tensors and the background (depth is not returned: not differentiable).
 
     The same image as :func:`rasterize`, bit for bit. The gradients are those of docs/method.md section 9 exactly as the
     reference rasterizer's autograd gives them (no gradient through skipped, clamped or stopped pairs, nor through
@@ -233,8 +213,8 @@ def rasterize_differentiable(
     copies of means, quats, scales and opacities where the inputs are not float32 and contiguous. The backward
     itself needs 36 bytes per pair (per-pair gradient moments), kept by the calling thread for reuse.
     """
-    _check_posed(means, quats, scales, opacities, colors, cameras, background, mode)
-    return _Rasterize.apply(means, quats, scales, opacities, colors, background, cameras, mode, simd, threads)
+    _check_posed(splats, cameras, background, mode)
+    return _Rasterize.apply(*splats.tensors().values(), background, cameras, mode, simd, threads)
 
 
 def _rows(g: Gaussians, width: int, dtype: torch.dtype) -> Tensor:

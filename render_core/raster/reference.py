@@ -19,6 +19,7 @@ from torch import Tensor
 from ..avatar import check_raster_mode
 from ..camera import Cameras
 from ..rotation import quat_to_matrix
+from .splats import RasterOutput, ShadedSplats
 
 TILE = 16
 NEAR = 0.01
@@ -188,37 +189,14 @@ def _segment_exclusive_log_cumsum(values: Tensor, segment_start: Tensor) -> Tens
     return excl - excl[segment_start][seg]
 
 
-@dataclass
-class RasterOutput:
-    """What a rasterizer returns for B cameras."""
-
-    rgb: Tensor  # [B, H, W, 3] colour composited over the background
-    alpha: Tensor  # [B, H, W] accumulated opacity, 1 - final transmittance
-    depth: Tensor  # [B, H, W] alpha-composited camera depth (divide by alpha for the expected depth)
-    means2d: Tensor | None = None  # [B, N, 2] projected centres (for densification statistics)
-    radii: Tensor | None = None  # [B, N, 2] int32, 0 where culled
-    timings: dict | None = None  # per-stage milliseconds (blend, lbs, raster) where the backend measures them
-
-
-def rasterize(
-    means: Tensor,  # [B, N, 3]
-    quats: Tensor,  # [B, N, 4] wxyz
-    scales: Tensor,  # [B, N, 3]
-    opacities: Tensor,  # [B, N]
-    colors: Tensor,  # [B, N, 3]
-    cameras: Cameras,  # B cameras
-    background: Tensor | None = None,  # [B, 3] or [3]; default black
-    mode: str = "classic",
-) -> RasterOutput:
-    """Splat B sets of N Gaussians, one per camera, exactly as docs/method.md section 9 defines.
-
-    Conventions: world-to-camera R, t (OpenCV), quaternions wxyz, linear scales, opacities in [0, 1], colours
-    already evaluated (no SH here). Returns RGB over ``background``, alpha and alpha-composited depth.
-    """
-    B, N = means.shape[:2]
+def rasterize(splats: ShadedSplats, cameras: Cameras, background: Tensor | None = None,
+              mode: str = "classic") -> RasterOutput:
+    """Splat ``splats`` for ``cameras`` as every backend does (:mod:`render_core.raster.splats`), differentiable
+    through autograd with respect to the splats' tensors and the background."""
+    B, N = splats.means.shape[:2]
     W, H = cameras.width, cameras.height
-    dtype = means.dtype
-    proj = project(means, quats, scales, opacities, cameras, mode)
+    dtype = splats.means.dtype
+    proj = project(splats.means, splats.quats, splats.scales, splats.opacities, cameras, mode)
     with torch.no_grad():
         gid, pid, alpha = _eligible_pairs(proj, W, H)
         # Order by (pixel, depth, Gaussian index): rank Gaussians by (depth, index), then sort the pair keys.
@@ -235,8 +213,7 @@ def rasterize(
         keep = torch.exp(log_t_before + log_t) > T_STOP
         gid, pid, first, alpha, log_t_before = gid[keep], pid[keep], first[keep], alpha[keep], log_t_before[keep]
 
-    inputs = (means, quats, scales, opacities, colors)
-    if torch.is_grad_enabled() and any(t.requires_grad for t in inputs):
+    if torch.is_grad_enabled() and any(t.requires_grad for t in splats.tensors().values()):
         # Differentiable composite of the kept pairs: alpha and T again, with autograd.
         _, alpha = _alpha(proj.means2d.reshape(-1, 2)[gid], proj.conics.reshape(-1, 3)[gid],
                           proj.opacities.reshape(-1)[gid], pid % W, (pid // W) % H)
@@ -244,7 +221,7 @@ def rasterize(
     w = alpha * torch.exp(log_t_before).to(dtype)
     num_pix = B * H * W
     acc_a = torch.zeros(num_pix, dtype=dtype).index_add(0, pid, w)
-    acc_c = torch.zeros(num_pix, 3, dtype=dtype).index_add(0, pid, w[:, None] * colors.reshape(-1, 3)[gid])
+    acc_c = torch.zeros(num_pix, 3, dtype=dtype).index_add(0, pid, w[:, None] * splats.colors.reshape(-1, 3)[gid])
     acc_d = torch.zeros(num_pix, dtype=dtype).index_add(0, pid, w * proj.depths.reshape(-1)[gid])
     if background is None:
         background = torch.zeros(3, dtype=dtype)

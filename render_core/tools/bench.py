@@ -26,7 +26,7 @@ from ..camera import Cameras, orbit
 from ..deform import Frame
 from ..errors import OptionError
 from ..media.pixels import to_rgba8
-from ..raster import check_backend, gsplat_backend, native
+from ..raster import ShadedSplats, check_backend, gsplat_backend, native
 from ..renderer import AvatarRenderer
 from .synth import synth_avatar
 
@@ -179,10 +179,10 @@ def bench_render(
 
 def _time_raster_step(raster, avatar: Avatar, cams: Cameras, frames: int, warmup: int, g: torch.Generator,
                       device: torch.device | None = None) -> dict:
-    """Median forward and backward ms of ``raster(means, quats, scales, opacities, colors, cams, bg, mode)`` ->
-    (rgb, alpha) on fresh posed splats each frame, for the loss sum(w rgb) + sum(v alpha) with random w, v.
+    """Median forward and backward ms of ``raster(splats, cams, bg, mode)`` -> (rgb, alpha) on fresh shaded splats
+    each frame, for the loss sum(w rgb) + sum(v alpha) with random w, v.
     ``device``: where the inputs live (a CUDA device is synchronised before each clock reading)."""
-    from ..deform import deform, shade
+    from ..deform import deform
 
     device = device or torch.device("cpu")
     sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
@@ -190,15 +190,15 @@ def _time_raster_step(raster, avatar: Avatar, cams: Cameras, frames: int, warmup
     fwd, bwd, last = [], [], {}
     for i in range(warmup + frames):
         splats = deform(avatar, random_frames(avatar, len(cams), g))
-        colors = shade(splats, cams.centres)
-        leaves = [t.detach().float().to(device).contiguous().requires_grad_(True)
-                  for t in (splats.means, splats.quats, splats.scales, splats.opacities, colors)]
+        shaded = ShadedSplats.from_splats(splats, cams)
+        leaves = ShadedSplats(*(t.detach().float().to(device).contiguous().requires_grad_(True)
+                                for t in shaded.tensors().values()))
         bg = torch.rand(len(cams), 3, generator=g).to(device).requires_grad_(True)
         w = torch.randn(len(cams), cams.height, cams.width, 3, generator=g).to(device)
         v = torch.randn(len(cams), cams.height, cams.width, generator=g).to(device)
         sync()
         t0 = time.perf_counter()
-        rgb, alpha = raster(*leaves, cams_dev, bg, avatar.raster_mode)
+        rgb, alpha = raster(leaves, cams_dev, bg, avatar.raster_mode)
         sync()
         t1 = time.perf_counter()
         ((rgb * w).sum() + (alpha * v).sum()).backward()

@@ -31,7 +31,7 @@ from ..data.frames import check_compatible, frame_inputs, targets
 from ..deform import Frame, shade, skin
 from ..errors import DatasetError
 from ..facemodel import FaceModel, read_facemodel
-from ..raster import native
+from ..raster import ShadedSplats, native
 from . import losses
 from .densify import Densifier
 from .grids import lookup_grid
@@ -145,12 +145,12 @@ def rasterize(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, op
 
     "cpu": the native forward and C++ backward; "cuda": gsplat's CUDA forward and backward (CPU inputs move to the
     GPU and rgb, alpha come back to the inputs' device, all differentiably)."""
+    splats = ShadedSplats(means, quats, scales, opacities, colors)
     if device == "cuda":
         from ..raster import gsplat_backend
 
-        return gsplat_backend.rasterize_differentiable(means, quats, scales, opacities, colors, cameras, None, mode)
-    return native.rasterize_differentiable(means, quats, scales, opacities, colors, cameras, None, mode,
-                                           threads=threads)
+        return gsplat_backend.rasterize_differentiable(splats, cameras, None, mode)
+    return native.rasterize_differentiable(splats, cameras, None, mode, threads=threads)
 
 
 def forward(model: TrainableAvatar, frame: Frame, cameras: Cameras, sh_degree: int | None = None,
