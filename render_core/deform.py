@@ -308,6 +308,8 @@ class Splats:
         sh_degree: SH degree of ``sh``.
 
     N counts the face Gaussians followed by the mouth-interior Gaussians. B may be 1 with tensors broadcast.
+    :meth:`render_core.raster.ShadedSplats.from_splats` evaluates the colours for B cameras, giving what every
+    rasterizer backend takes.
     """
 
     means: Tensor  # [B, N, 3]
