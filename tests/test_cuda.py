@@ -187,7 +187,7 @@ def test_training_on_cuda_lowers_the_loss(tmp_path):
     preset = get_preset("tiny").with_(gaussians=400, mouth=40, sh_every=15, checkpoint_every=1000, log_every=1,
                                       final_eval_frames=2, xyz_decay_steps=50)
     summary = train(data, tmp_path / "toy.bsplat", workdir=tmp_path / "work", preset=preset, iterations=50,
-                    progress=False, facemodel=head, device="cuda")
+                    facemodel=head, device="cuda")
     lines = [json.loads(s) for s in (tmp_path / "work" / "log.jsonl").read_text().splitlines()]
     first, last = np.mean([r["loss"] for r in lines[:5]]), np.mean([r["loss"] for r in lines[-5:]])
     print(f"cuda training: loss {first:.4f} -> {last:.4f}, {summary['ms_per_iteration']} ms per iteration")
@@ -275,9 +275,9 @@ def test_bench_and_cli_refuse_cuda_with_the_reason(capsys):
 
 @no_cuda
 def test_training_on_cuda_without_it_says_why():
-    from render_core.train.loop import check_device
+    from render_core.train.trainer import raster_step
 
     with pytest.raises(RuntimeError, match="device='cuda'.*no CUDA device"):
-        check_device("cuda")
+        raster_step("cuda")
     with pytest.raises(ValueError, match="'cpu' or 'cuda'"):
-        check_device("tpu")
+        raster_step("tpu")

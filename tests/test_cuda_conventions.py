@@ -138,6 +138,6 @@ def test_train_with_device_cuda_runs_the_emulated_gsplat_step(monkeypatch, head,
     synth_dataset(tmp_path / "data", frames=3, size=48, seed=1, facemodel=head)
     preset = get_preset("tiny").with_(gaussians=200, mouth=20, checkpoint_every=1000, log_every=1)
     summary = train(tmp_path / "data", tmp_path / "a.bsplat", workdir=tmp_path / "work", preset=preset,
-                    iterations=5, stop_after=3, progress=False, facemodel=head, device="cuda")
+                    iterations=5, stop_after=3, facemodel=head, device="cuda")
     assert summary["device"] == "cuda" and summary["stopped"] and len(calls) == 3
     assert all(math.isfinite(r["loss"]) for r in (summary["first"], summary["last"]))

@@ -8,12 +8,13 @@ import pytest
 import torch
 
 from render_core.camera import Cameras
+from render_core.deform import Splats
 from render_core.rotation import axis_angle_to_matrix, matrix_to_quat
 from render_core.train import TrainableAvatar, get_preset
-from render_core.train.densify import Densifier, screen_radii
+from render_core.train.densify import DensifyStrategy, screen_radii
 from render_core.train.grids import LookupGrid
 from render_core.train.initialize import init_avatar
-from render_core.train.loop import make_optimizer
+from render_core.train.trainer import make_optimizer
 from tests.test_grids import blob_model
 
 CFG = get_preset("tiny")
@@ -64,15 +65,15 @@ def test_gaussians_bigger_than_20_px_on_screen_are_pruned_after_3k(blob, prune_b
     model = trainable(blob)
     opt = make_optimizer(model, CFG)
     keep_means = model.means.detach().clone()
-    dens = Densifier(4, extent=100.0)  # no world-size pruning
+    dens = DensifyStrategy(4, extent=100.0, grad_threshold=math.inf, prune_opacity=0.0,
+                           max_gaussians=100)  # no world-size pruning
     dens.observe_radii(*hand_built(), camera())
     assert dens.max_radii.tolist() == [16, 31, 31, 0]
     # A later frame sees the first one closer (radius 2 x 16): the largest radius counts.
     means, quats, scales, opac = hand_built()
     dens.observe_radii(means * torch.tensor([1, 1, 0.5]), quats, scales, opac, camera())
     assert dens.max_radii[0] > 20
-    counts = dens.step(model, opt, torch.Generator(), grad_threshold=math.inf, prune_opacity=0.0, max_gaussians=100,
-                       prune_big=prune_big)
+    counts = dens.refine(model, opt, torch.Generator(), prune_big=prune_big)
     if prune_big:  # iteration > prune_big_after: only the one never bigger than 20 px stays
         assert counts["pruned"] == counts["pruned_screen"] == 3 and model.num_gaussians == 1
         torch.testing.assert_close(model.means.detach(), keep_means[3:])
@@ -95,12 +96,11 @@ def test_children_and_moved_gaussians_take_the_grid_values(blob):
     opt.step()  # Adam moments everywhere
     before = {k: getattr(model, k).detach().clone() for k in ("lbs_weights", "d", "hat_k", "hat_n", "hat_means")}
     grid = LookupGrid(blob, 32)
-    dens = Densifier(n, extent=0.05)
+    dens = DensifyStrategy(n, extent=0.05, grad_threshold=0.5, prune_opacity=0.0, max_gaussians=1000, grid=grid)
     dens.grad_accum[:3], dens.denom[:] = 1.0, 1.0  # Gaussians 0-2 densify
     with torch.no_grad():
         model.log_scales[0] = math.log(1e-5)  # small: cloned; 1 and 2 are split
-    counts = dens.step(model, opt, torch.Generator().manual_seed(1), grad_threshold=0.5, prune_opacity=0.0,
-                       max_gaussians=1000, grid=grid)
+    counts = dens.refine(model, opt, torch.Generator().manual_seed(1))
     assert counts["cloned"] == 1 and counts["split"] == 2 and model.num_gaussians == n + 3
     # New order: survivors 0, 3..n-1, the clone of 0, then two children each of 1 and 2.
     children = torch.arange(n - 2, n + 3)
@@ -143,11 +143,38 @@ def test_children_and_moved_gaussians_take_the_grid_values(blob):
 def test_without_a_grid_children_copy_their_parent(blob):
     model = trainable(blob, 10)
     opt = make_optimizer(model, CFG)
-    dens = Densifier(10, extent=0.05)
+    dens = DensifyStrategy(10, extent=0.05, grad_threshold=0.5, prune_opacity=0.0, max_gaussians=100)
     dens.grad_accum[2], dens.denom[:] = 1.0, 1.0
     with torch.no_grad():
         model.log_scales[2] = math.log(1e-5)
     lbs2, d2 = model.lbs_weights[2].clone(), model.d[:, 2].clone()
-    counts = dens.step(model, opt, torch.Generator(), grad_threshold=0.5, prune_opacity=0.0, max_gaussians=100)
+    counts = dens.refine(model, opt, torch.Generator())
     assert counts["cloned"] == 1 and counts["looked_up"] == 0
     assert torch.equal(model.lbs_weights[-1], lbs2) and torch.equal(model.d[:, -1], d2)
+
+
+def test_the_strategy_owns_its_schedule(blob):
+    """Statistics up to refine_until, screen radii from the interval that ends after prune_big_after, a refinement
+    every refine_every iterations after refine_from, world- and screen-size pruning only after prune_big_after."""
+    model = trainable(blob)
+    opt = make_optimizer(model, CFG)
+    with torch.no_grad():
+        model.log_scales[:2] = math.log(0.001)
+        model.log_scales[2:] = math.log(0.05)  # > 0.1 x extent: pruned once prune_big applies
+    dens = DensifyStrategy(4, extent=0.1, refine_from=2, refine_until=8, refine_every=3, prune_big_after=5,
+                           grad_threshold=math.inf, prune_opacity=0.0, max_screen_radius=1e9)
+    means, quats, scales, opac = (torch.cat([t, t[:2]])[None] for t in hand_built())  # 4 face + 2 mouth
+    refined, denom, radii = {}, {}, {}
+    for it in range(1, 10):
+        posed = Splats(means.clone().requires_grad_(True) * 1.0, quats, scales, opac,
+                       torch.zeros(1, 6, 1, 3), None, 0)
+        dens.step_pre_backward(it, posed)
+        posed.means[..., :2].sum().backward()
+        counts = dens.step_post_backward(it, model, opt, torch.Generator(), camera())
+        if counts is not None:
+            refined[it] = counts["pruned"]
+        denom[it], radii[it] = float(dens.denom.sum()), float(dens.max_radii.sum())
+    assert refined == {3: 0, 6: 2}  # the big two: not at 3 (the first after refine_from), at 6
+    assert denom[2] == 8 and radii[2] == 0  # two iterations' statistics; no radii before 5 - 3
+    assert denom[3] == 0 and denom[4] == 4 and radii[4] > 0  # a new interval after each refinement
+    assert denom[8] == 2 * 2 and not dens.collects(9) and denom[9] == denom[8]  # none collected after 8

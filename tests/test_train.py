@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import math
+import threading
 
 import numpy as np
 import pytest
@@ -15,11 +17,11 @@ from render_core.data.generate import synth_dataset
 from render_core.deform import blend
 from render_core.renderer import AvatarRenderer
 from render_core.rotation import matrix_to_quat, quat_multiply
-from render_core.train import CONSISTENCY, TrainableAvatar, get_preset, train
+from render_core.train import CONSISTENCY, Outcome, Progress, TrainableAvatar, Trainer, get_preset, train
 from render_core.train.geometry import closest_points, consistency_range, displacement_magnitudes
 from render_core.train.initialize import init_avatar
-from render_core.train.loop import forward, load_checkpoint, make_optimizer
 from render_core.train.losses import MouthCylinder, psnr, ssim
+from render_core.train.trainer import forward, last_checkpoint, load_checkpoint, make_optimizer, raster_step
 from tests.test_initialize import tetra_model
 
 TOY = get_preset("tiny").with_(gaussians=400, mouth=40, sh_every=15, checkpoint_every=1000, log_every=1,
@@ -43,8 +45,7 @@ def small(head):
 def trained(toy, head, tmp_path_factory):
     """One short training run (50 iterations) shared by the loss and bundle tests."""
     out = tmp_path_factory.mktemp("run")
-    summary = train(toy, out / "toy.bsplat", workdir=out / "work", preset=TOY, iterations=50, progress=False,
-                    facemodel=head)
+    summary = train(toy, out / "toy.bsplat", workdir=out / "work", preset=TOY, iterations=50, facemodel=head)
     return summary, out
 
 
@@ -116,7 +117,7 @@ def test_consistency_switches_change_what_is_optimised(small, head, toy):
         model = TrainableAvatar.from_facemodel(small, head, mode)
         names = {g["name"] for g in make_optimizer(model, TOY).param_groups}
         assert ("hat_means" in names) == (mode != "frozen") and "means" in names and "mouth_sh_dc" in names
-        rgb, alpha = forward(model, frame, cams, 0)
+        rgb, alpha, _ = forward(model, frame, cams, 0)
         ((rgb - rgb_t).square().mean() + (alpha - mask_t).square().mean()).backward()
         grads[mode] = {p: None if model.hat(p) is None or model.hat(p).grad is None else model.hat(p).grad
                        for p in ("means", "quats", "opacity_logits")}
@@ -247,12 +248,12 @@ def test_resume_equals_an_uninterrupted_run(toy, head, tmp_path):
     # radii are tracked from iteration 2 and prune from 4), a checkpoint at 3.
     cfg = TOY.with_(checkpoint_every=3, sh_every=2, densify_from=1, densify_every=2, densify_until=6,
                     densify_grad=2e-4, prune_big_after=3, max_screen_radius=8.0)
-    straight = train(toy, tmp_path / "a.bsplat", workdir=tmp_path / "a", preset=cfg, iterations=6, progress=False,
+    straight = train(toy, tmp_path / "a.bsplat", workdir=tmp_path / "a", preset=cfg, iterations=6,
                      facemodel=head, seed=3)
-    part = train(toy, tmp_path / "b.bsplat", workdir=tmp_path / "b", preset=cfg, iterations=6, progress=False,
+    part = train(toy, tmp_path / "b.bsplat", workdir=tmp_path / "b", preset=cfg, iterations=6,
                  facemodel=head, seed=3, stop_after=3)
     assert part["stopped"] and part["bundle"] is None and not (tmp_path / "b.bsplat").exists()
-    resumed = train(toy, tmp_path / "b.bsplat", workdir=tmp_path / "b", preset=cfg, iterations=6, progress=False,
+    resumed = train(toy, tmp_path / "b.bsplat", workdir=tmp_path / "b", preset=cfg, iterations=6,
                     facemodel=head, resume=True)
     assert resumed["resumed_from"] == 3 and resumed["iterations"] == 6
     assert straight["gaussians"] > TOY.gaussians and straight["gaussians"] == resumed["gaussians"]
@@ -274,15 +275,123 @@ def test_resume_equals_an_uninterrupted_run(toy, head, tmp_path):
     assert log_a == log_b
     assert straight["final"]["psnr"] == resumed["final"]["psnr"]
     # A fresh run in a used workdir starts over (the old checkpoints go).
-    again = train(toy, tmp_path / "b.bsplat", workdir=tmp_path / "b", preset=cfg, iterations=2, progress=False,
+    again = train(toy, tmp_path / "b.bsplat", workdir=tmp_path / "b", preset=cfg, iterations=2,
                   facemodel=head, seed=3)
     assert again["resumed_from"] is None
     assert [p.name for p in sorted((tmp_path / "b" / "checkpoints").glob("*.pt"))] == ["ckpt_0000002.pt"]
 
 
-def test_unknown_face_model_is_an_error_naming_what_to_pass(toy, tmp_path):
+# ---------------------------------------------------------------------------------------------------- Trainer
+# Densification at iterations 2, 4 and 6 (the strategy's statistics are mid-interval at 3), the SH ramp every 2.
+DENSE = TOY.with_(sh_every=2, densify_from=1, densify_every=2, densify_until=6, densify_grad=2e-4,
+                  prune_big_after=3, max_screen_radius=8.0)
+
+
+def trainer_state(t: Trainer) -> dict:
+    """Everything a trainer carries from step to step, as plain tensors and numbers."""
+    return {"iteration": t.iteration, "model": t.model.state()["tensors"], "optimizer": t.optimizer.state_dict(),
+            "rng": t.generator.get_state(), "densify": t.strategy.state()}
+
+
+def assert_same_state(a: dict, b: dict) -> None:
+    assert a["iteration"] == b["iteration"] and a["model"].keys() == b["model"].keys()
+    for key in a["model"]:
+        assert torch.equal(a["model"][key], b["model"][key]), key
+    sa, sb = a["optimizer"]["state"], b["optimizer"]["state"]
+    assert sa.keys() == sb.keys()
+    for i in sa:
+        for key in sa[i]:
+            assert torch.equal(torch.as_tensor(sa[i][key]), torch.as_tensor(sb[i][key])), (i, key)
+    assert torch.equal(a["rng"], b["rng"])
+    for key in ("grad_accum", "denom", "max_radii"):
+        assert torch.equal(a["densify"][key], b["densify"][key]), key
+
+
+def test_trainer_step_checkpoint_resume_equals_an_uninterrupted_run(toy, head, tmp_path):
+    straight = Trainer(toy, tmp_path / "a", DENSE, iterations=6, seed=3, facemodel=head)
+    assert straight.run() is Outcome.FINISHED and straight.iteration == 6
+    assert straight.model.num_gaussians > TOY.gaussians  # densified
+    first = Trainer(toy, tmp_path / "b", DENSE, iterations=6, seed=3, facemodel=head)
+    for _ in range(3):
+        first.step()
+    assert first.checkpoint().name == "ckpt_0000003.pt" and float(first.strategy.denom.sum()) > 0
+    # Another process: the checkpoint's seed and preset win over the arguments.
+    second = Trainer(toy, tmp_path / "b", TOY, iterations=6, seed=99, facemodel=head)
+    assert second.resume() and second.iteration == 3
+    assert second.seed == 3 and second.preset == DENSE.with_(iterations=6)
+    while second.iteration < second.total:
+        second.step()
+    assert_same_state(trainer_state(straight), trainer_state(second))
+    losses_a = [json.loads(s)["loss"] for s in (tmp_path / "a" / "log.jsonl").read_text().splitlines()]
+    losses_b = [json.loads(s)["loss"] for s in (tmp_path / "b" / "log.jsonl").read_text().splitlines()]
+    assert len(losses_a) == 6 and losses_a == losses_b
+    with pytest.raises(RuntimeError, match="complete"):
+        second.step()
+    # Without a checkpoint resume says so and the trainer starts fresh.
+    assert not Trainer(toy, tmp_path / "c", DENSE, facemodel=head).resume()
+
+
+def test_trainer_cancels_between_steps_with_a_checkpoint(toy, head, tmp_path):
+    cancel = threading.Event()
+    seen = []
+
+    def on_progress(event: Progress) -> None:
+        seen.append(event.iteration)
+        if event.iteration == 2:
+            cancel.set()
+
+    t = Trainer(toy, tmp_path / "w", DENSE, iterations=6, seed=3, facemodel=head)
+    assert t.run(on_progress=on_progress, should_cancel=cancel) is Outcome.CANCELLED
+    assert seen == [1, 2] and t.iteration == 2  # no step after the request, none cut short
+    assert last_checkpoint(tmp_path / "w").name == "ckpt_0000002.pt"
+    assert [json.loads(s)["iteration"] for s in (tmp_path / "w" / "log.jsonl").read_text().splitlines()] == [1, 2]
+    assert t.run(should_cancel=lambda: True) is Outcome.CANCELLED and t.iteration == 2  # a callable works too
+    # The cancelled state is a consistent one: resumed elsewhere it ends where an uninterrupted run does.
+    resumed = Trainer(toy, tmp_path / "w", DENSE, iterations=6, facemodel=head)
+    assert resumed.resume() and resumed.run(until=4) is Outcome.STOPPED and resumed.iteration == 4
+    straight = Trainer(toy, tmp_path / "s", DENSE, iterations=6, seed=3, facemodel=head)
+    assert straight.run(until=4) is Outcome.STOPPED
+    assert_same_state(trainer_state(straight), trainer_state(resumed))
+
+
+def test_trainer_progress_events_and_previews(toy, head, tmp_path, monkeypatch):
+    from render_core import raster
+
+    calls = []
+    real = raster.DIFFERENTIABLE["native"]
+    monkeypatch.setitem(raster.DIFFERENTIABLE, "native", lambda *a, **k: calls.append(1) or real(*a, **k))
+    t = Trainer(toy, tmp_path / "w", TOY.with_(log_every=2), iterations=4, facemodel=head)
+    events: list[Progress] = []
+    assert t.run(on_progress=events.append, preview_every=2) is Outcome.FINISHED
+    assert len(calls) == 4 + 2  # the registry's step: four iterations and two previews
+    assert [e.iteration for e in events] == [1, 2, 3, 4] and {e.total for e in events} == {4}
+    for e in events:
+        assert set(e.losses) == {"loss", "l1", "ssim", "alpha", "mouth"} and math.isfinite(e.losses["loss"])
+        assert math.isfinite(e.psnr) and e.gaussians == TOY.gaussians and e.eta >= 0 and e.densified is None
+    assert [e.elapsed for e in events] == sorted(e.elapsed for e in events) and events[-1].eta == 0
+    assert [e.preview is None for e in events] == [True, False, True, False]
+    ds = read_dataset(toy)
+    assert t.preview_index == ds.tracking.test[0]
+    img = events[-1].preview
+    assert img.dtype == np.uint8 and img.shape == (ds.tracking.height, ds.tracking.width, 3) and img.max() > 0
+    rng = t.generator.get_state()
+    assert np.array_equal(t.preview(), img) and torch.equal(t.generator.get_state(), rng)  # on demand, no effect
+    # The log: every log_every iterations, the first and the last.
+    assert [json.loads(s)["iteration"] for s in (tmp_path / "w" / "log.jsonl").read_text().splitlines()] == [1, 2, 4]
+    assert t.summary()["iterations_this_run"] == 4
+
+
+def test_training_device_picks_the_registry_step():
+    from render_core import raster
+
+    assert raster_step("cpu") is raster.DIFFERENTIABLE["native"]
+    with pytest.raises(ValueError, match="'cpu' or 'cuda'"):
+        raster_step("tpu")
+
+
+def test_unknown_face_model_is_an_error_naming_what_to_pass():
     from render_core.errors import DatasetError
-    from render_core.train.loop import resolve_facemodel
+    from render_core.train.trainer import resolve_facemodel
 
     with pytest.raises(DatasetError, match="facemodel=PATH"):
-        resolve_facemodel("flame-2020", None, tmp_path)
+        resolve_facemodel("flame-2020", None)

@@ -222,17 +222,32 @@ def cmd_data_validate(args: argparse.Namespace) -> int:
 
 
 def cmd_train(args: argparse.Namespace) -> int:
-    from ..train.loop import train
-    from ..train.presets import PRESETS
+    from ..train import PRESETS, train
 
     preset = PRESETS[args.preset]
     if args.gaussians:
         preset = preset.with_(gaussians=args.gaussians, mouth=max(2, min(preset.mouth, args.gaussians // 10)),
                               max_gaussians=max(args.gaussians, preset.max_gaussians * args.gaussians
                                                 // preset.gaussians))
-    summary = train(args.data, args.out, workdir=args.workdir, preset=preset, device=args.device,
-                    resume=args.resume, seed=args.seed, iterations=args.iterations, progress=not args.quiet,
-                    consistency=args.consistency)
+    bar = None
+
+    def progress(event) -> None:  # a tqdm bar on stderr: iteration, loss, PSNR, ETA
+        nonlocal bar
+        if bar is None:
+            from tqdm import tqdm
+
+            bar = tqdm(total=event.total, initial=event.iteration - 1, file=sys.stderr, desc="train", unit="it",
+                       dynamic_ncols=True)
+        bar.set_postfix(loss=f"{event.losses['loss']:.4f}", psnr=f"{event.psnr:.2f}", refresh=False)
+        bar.update(1)
+
+    try:
+        summary = train(args.data, args.out, workdir=args.workdir, preset=preset, device=args.device,
+                        resume=args.resume, seed=args.seed, iterations=args.iterations,
+                        consistency=args.consistency, on_progress=None if args.quiet else progress)
+    finally:
+        if bar is not None:
+            bar.close()
     _emit(summary)
     return 0
 

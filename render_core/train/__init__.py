@@ -3,13 +3,17 @@
 - :mod:`.model`: the trainable avatar with the blendshape-consistency parametrisation (Eq. 2) and its ablations;
 - :mod:`.geometry`: closest surface points and per-blendshape displacement magnitudes d_{i,k};
 - :mod:`.grids`: the lazily built 256^3 lookup grid of LBS weights and d_{i,k} (densified and moved Gaussians);
-- :mod:`.densify`: densification and pruning (gradient, opacity, world and screen size);
+- :mod:`.densify`: densification and pruning (gradient, opacity, world and screen size) as a strategy that owns
+  its schedule;
 - :mod:`.losses`: L1, D-SSIM, alpha MSE, mouth-cylinder regulariser;
-- :mod:`.loop`: :func:`train` (presets in :mod:`.presets`), checkpoints and exact resume.
+- :mod:`.trainer`: :class:`Trainer` (step, checkpoint, exact resume, progress events, cancel between steps) and
+  :func:`train`, the whole run (presets in :mod:`.presets`).
 """
 
-from .loop import train
+from .densify import DensifyStrategy
 from .model import CONSISTENCY, TrainableAvatar
 from .presets import PRESETS, Preset, get_preset
+from .trainer import Outcome, Progress, Trainer, train
 
-__all__ = ["CONSISTENCY", "PRESETS", "Preset", "TrainableAvatar", "get_preset", "train"]
+__all__ = ["CONSISTENCY", "PRESETS", "DensifyStrategy", "Outcome", "Preset", "Progress", "TrainableAvatar",
+           "Trainer", "get_preset", "train"]

@@ -5,15 +5,16 @@ Statistics: after each backward, the view-space positional gradient of every fac
 gradient of the posed world-space centre through the pinhole model (dL/du = dL/dx_cam * z / f; the small part of
 the gradient that flows through the covariance's dependence on the centre is not separated out). The norm is
 accumulated for every Gaussian with a non-zero gradient (the visible ones). When screen-size pruning can apply,
-also the largest screen radius of every visible Gaussian since the last step (:func:`screen_radii`: 3 sigma of the
+also the largest screen radius of every visible Gaussian since the last refinement (:func:`screen_radii`: 3 sigma of the
 larger eigenvalue of the blurred 2D covariance, as 3DGS; the rasterizer does not return radii).
 
-Every ``densify_every`` iterations in [densify_from, densify_until]:
+:class:`DensifyStrategy` owns the schedule (hooks before and after each backward, as gsplat's strategies) and
+refines every ``densify_every`` iterations in (densify_from, densify_until]:
 - Gaussians with a mean accumulated gradient >= ``densify_grad``: cloned (an exact copy) if their largest scale is
   <= ``percent_dense`` x the scene extent, else split into two children sampled from the parent's Gaussian with
   scales / 1.6 (the parent is removed);
 - pruned: neutral opacity < ``prune_opacity``, and after ``prune_big_after`` iterations (3DGS: 3000) also a largest
-  scale > 0.1 x extent or a screen radius > ``max_screen_radius`` (20 px) in some frame since the last step;
+  scale > 0.1 x extent or a screen radius > ``max_screen_radius`` (20 px) in some frame since the last one;
 - capped at ``max_gaussians`` (the largest gradients first).
 Children copy their parent's blendshape entries (dG_init pairs, dG_hat pairs or rows, pose correctives, eyelid
 offsets); their Adam moments start at zero, survivors keep theirs. With a lookup grid (:mod:`.grids`, the
@@ -25,15 +26,21 @@ extent is the largest distance of the initial face Gaussians from their centroid
 
 from __future__ import annotations
 
+import logging
+
 import torch
 from torch import Tensor, nn
 
 from ..camera import Cameras
+from ..deform import Splats
 from ..raster.reference import project
 from ..rotation import quat_to_matrix
 from .geometry import consistency_weights
 from .grids import LookupGrid
 from .model import PROPS, TrainableAvatar
+from .presets import Preset
+
+log = logging.getLogger(__name__)
 
 PERCENT_DENSE = 0.01
 SPLIT_SCALE = 1.6
@@ -62,26 +69,82 @@ def screen_radii(
         return torch.where(proj.visible[0], torch.ceil(3.0 * lam.clamp_min(0.0).sqrt()), 0.0)
 
 
-class Densifier:
-    """Gradient statistics and the densify/prune step."""
+class DensifyStrategy:
+    """Densification and pruning as a strategy that owns its schedule and its statistics.
 
-    def __init__(self, n: int, extent: float):
+    The trainer calls two hooks every iteration: :meth:`step_pre_backward` with the posed splats (before the loss's
+    backward: their centres must keep a gradient) and :meth:`step_post_backward` after it (and after the optimizer
+    step), which accumulates the statistics and, on schedule, refines (:meth:`refine`). The schedule, as a
+    preset states it (:meth:`from_preset`): statistics at iterations <= ``refine_until``; screen radii from the
+    interval that ends after ``prune_big_after``; a refinement every ``refine_every`` iterations after
+    ``refine_from`` (up to ``refine_until``), with world- and screen-size pruning after ``prune_big_after``.
+    :meth:`state` / :meth:`from_state` carry the statistics through a checkpoint (the schedule comes from the
+    preset, the grid from the face model)."""
+
+    def __init__(self, n: int, extent: float, *, refine_from: int = 500, refine_until: int = 15_000,
+                 refine_every: int = 100, grad_threshold: float = 1e-3, prune_opacity: float = 0.005,
+                 max_gaussians: int = 200_000, prune_big_after: int = 3000,
+                 max_screen_radius: float = MAX_SCREEN_RADIUS, grid: LookupGrid | None = None):
         self.extent = float(extent)
+        self.refine_from, self.refine_until, self.refine_every = refine_from, refine_until, max(refine_every, 1)
+        self.grad_threshold, self.prune_opacity, self.max_gaussians = grad_threshold, prune_opacity, max_gaussians
+        self.prune_big_after, self.max_screen_radius = prune_big_after, max_screen_radius
+        self.grid = grid  # where children and moved Gaussians get their LBS weights and d (None: their parent's)
         self.grad_accum = torch.zeros(n)
         self.denom = torch.zeros(n)
-        self.max_radii = torch.zeros(n)  # the largest screen radius (pixels) since the last step
+        self.max_radii = torch.zeros(n)  # the largest screen radius (pixels) since the last refinement
+        self._posed: Splats | None = None  # this iteration's posed splats, between the two hooks
+
+    @classmethod
+    def from_preset(cls, preset: Preset, n: int, extent: float, grid: LookupGrid | None = None) -> DensifyStrategy:
+        """The preset's schedule and thresholds (``densify=False``: a strategy that never collects nor refines)."""
+        return cls(n, extent, refine_from=preset.densify_from,
+                   refine_until=preset.densify_until if preset.densify else 0, refine_every=preset.densify_every,
+                   grad_threshold=preset.densify_grad, prune_opacity=preset.prune_opacity,
+                   max_gaussians=preset.max_gaussians, prune_big_after=preset.prune_big_after,
+                   max_screen_radius=preset.max_screen_radius, grid=grid)
 
     def state(self) -> dict:
         return {"extent": self.extent, "grad_accum": self.grad_accum.clone(), "denom": self.denom.clone(),
                 "max_radii": self.max_radii.clone()}
 
-    @classmethod
-    def from_state(cls, state: dict) -> Densifier:
-        d = cls(0, state["extent"])
-        d.grad_accum, d.denom = state["grad_accum"].clone(), state["denom"].clone()
-        d.max_radii = state["max_radii"].clone() if "max_radii" in state else torch.zeros_like(d.denom)
-        return d
+    def load_state(self, state: dict) -> None:
+        """The statistics of :meth:`state` (a checkpoint's)."""
+        self.extent = float(state["extent"])
+        self.grad_accum, self.denom = state["grad_accum"].clone(), state["denom"].clone()
+        self.max_radii = state["max_radii"].clone() if "max_radii" in state else torch.zeros_like(self.denom)
 
+    # ------------------------------------------------------------------------------------------- the schedule
+    def collects(self, iteration: int) -> bool:
+        """Whether gradient statistics are gathered at this (1-based) iteration."""
+        return iteration <= self.refine_until
+
+    def step_pre_backward(self, iteration: int, posed: Splats) -> None:
+        """Before the backward: keep the gradient of the posed centres when this iteration collects."""
+        if self.collects(iteration) and posed.means.requires_grad:
+            posed.means.retain_grad()
+            self._posed = posed
+
+    def step_post_backward(self, iteration: int, model: TrainableAvatar, opt: torch.optim.Optimizer,
+                           gen: torch.Generator, cameras: Cameras) -> dict | None:
+        """After the backward and the optimizer step: accumulate this iteration's statistics (the face Gaussians
+        of the splats :meth:`step_pre_backward` saw, from ``cameras``) and refine on schedule; returns the counts
+        of :meth:`refine` when it refined, else None."""
+        posed, self._posed = self._posed, None
+        if posed is None:
+            return None
+        n = model.num_gaussians
+        self.accumulate(posed.means[0, :n].detach(), posed.means.grad[0, :n], cameras)
+        if iteration > self.prune_big_after - self.refine_every:  # screen radii count from the interval before
+            self.observe_radii(posed.means[0, :n], posed.quats[0, :n], posed.scales[0, :n], posed.opacities[0, :n],
+                               cameras)
+        if self.refine_from < iteration and iteration % self.refine_every == 0:
+            counts = self.refine(model, opt, gen, prune_big=iteration > self.prune_big_after)
+            log.info("iteration %d: %s", iteration, counts)
+            return counts
+        return None
+
+    # ----------------------------------------------------------------------------------------- the mechanics
     def observe_radii(self, means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor,
                       cameras: Cameras) -> None:
         """Keep the largest screen radius of every face Gaussian (posed [N, ...] tensors, :func:`screen_radii`)."""
@@ -100,27 +163,27 @@ class Densifier:
         self.grad_accum += torch.where(visible, norm, 0.0)
         self.denom += visible.to(self.denom.dtype)
 
-    def step(self, model: TrainableAvatar, opt: torch.optim.Optimizer, gen: torch.Generator, grad_threshold: float,
-             prune_opacity: float, max_gaussians: int, prune_big: bool = False, *,
-             max_screen_radius: float = MAX_SCREEN_RADIUS, grid: LookupGrid | None = None) -> dict:
-        """Densify and prune; returns counts (cloned, split, pruned, pruned_screen, looked_up, gaussians).
+    def refine(self, model: TrainableAvatar, opt: torch.optim.Optimizer, gen: torch.Generator,
+               prune_big: bool = False) -> dict:
+        """Densify and prune now; returns counts (cloned, split, pruned, pruned_screen, looked_up, gaussians) and
+        starts a new interval of statistics.
 
         ``prune_big``: also prune Gaussians larger than 0.1 x extent in the world or ``max_screen_radius`` pixels
-        on screen (the largest radius :meth:`observe_radii` saw since the last step). ``grid``: where children and
-        moved Gaussians get their LBS weights and d (None: children copy their parent's)."""
+        on screen (the largest radius :meth:`observe_radii` saw since the last refinement). Splits draw their
+        children from ``gen``."""
         n = model.num_gaussians
         avg = self.grad_accum / self.denom.clamp_min(1)
         with torch.no_grad():
             scale = model.log_scales.detach().exp().amax(1)
-            prune = torch.sigmoid(model.opacity_logits.detach()) < prune_opacity
+            prune = torch.sigmoid(model.opacity_logits.detach()) < self.prune_opacity
             screen = torch.zeros(n, dtype=torch.bool)
             if prune_big:
                 prune |= scale > 0.1 * self.extent
                 if len(self.max_radii) == n:
-                    screen = (self.max_radii > max_screen_radius) & ~prune
+                    screen = (self.max_radii > self.max_screen_radius) & ~prune
                     prune |= screen
-            chosen = (avg >= grad_threshold) & ~prune
-            room = max(max_gaussians - int((~prune).sum()), 0)
+            chosen = (avg >= self.grad_threshold) & ~prune
+            room = max(self.max_gaussians - int((~prune).sum()), 0)
             big = scale > PERCENT_DENSE * self.extent
             # Each clone adds one Gaussian, each split one net (two children replace the parent).
             if int(chosen.sum()) > room:
@@ -151,6 +214,7 @@ class Densifier:
                 updates = {"means": new_means, "log_scales": new_scales}
             reindex(model, opt, src, fresh, updates)
             looked_up = 0
+            grid = self.grid
             if grid is not None:
                 moved = (model.means.detach() - model.lookup_at).norm(dim=1) > grid.cell
                 idx = (fresh | moved).nonzero().flatten()
