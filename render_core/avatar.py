@@ -14,7 +14,7 @@ from typing import Any, Literal
 import torch
 from torch import Tensor
 
-from .errors import ShapeError
+from .errors import OptionError, ShapeError
 
 RasterMode = Literal["classic", "antialiased"]
 RASTER_MODES: tuple[str, ...] = ("classic", "antialiased")
@@ -23,7 +23,7 @@ RASTER_MODES: tuple[str, ...] = ("classic", "antialiased")
 def check_raster_mode(mode: str) -> None:
     """ValueError unless ``mode`` is one of :data:`RASTER_MODES` (what every rasterizer backend takes)."""
     if mode not in RASTER_MODES:
-        raise ValueError(f"raster mode must be one of {RASTER_MODES}, got {mode!r}")
+        raise OptionError(f"must be one of {RASTER_MODES}, got {mode!r}", field="raster_mode")
 
 # FLAME's joints (docs/method.md section 11) and the open head's.
 FLAME_JOINTS: tuple[str, ...] = ("root", "neck", "jaw", "eye_l", "eye_r")
@@ -34,7 +34,7 @@ FLAME_MOUTH_JOINTS: tuple[str, str] = ("neck", "jaw")
 def sh_coeff_count(degree: int) -> int:
     """Number of SH coefficients per channel for an SH degree (0..3)."""
     if degree not in (0, 1, 2, 3):
-        raise ValueError(f"SH degree must be 0..3, got {degree}")
+        raise OptionError(f"SH degree must be 0..3, got {degree}", field="sh_degree")
     return (degree + 1) ** 2
 
 
@@ -141,7 +141,7 @@ class Avatar:
         every frame) is stored in ``precision``; the neutral and mouth Gaussians stay float32 (positions need it:
         fp16 moves a point 0.1 m from the origin by up to 30 um, a tenth of a pixel at 512 px)."""
         if precision not in ("fp32", "fp16"):
-            raise ValueError(f"precision must be fp32 or fp16, got {precision!r}")
+            raise OptionError(f"must be fp32 or fp16, got {precision!r}", field="precision")
         store = torch.float16 if precision == "fp16" else torch.float32
 
         def cast(t: Tensor | None) -> Tensor | None:

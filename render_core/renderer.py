@@ -24,7 +24,7 @@ from torch import Tensor
 from .avatar import Avatar, Gaussians
 from .camera import Cameras
 from .deform import Frame, blend, skin
-from .errors import ShapeError
+from .errors import OptionError, ShapeError
 from .raster import RasterOutput, ShadedSplats, check_backend, gsplat_backend, native, render
 
 # Blendshape storage of a DeviceAvatar; compute is float32 whatever the storage.
@@ -45,7 +45,7 @@ class DeviceAvatar:
     def __init__(self, avatar: Avatar, device: torch.device | str, precision: str | None = None):
         precision = precision or avatar.precision
         if precision not in STORAGE_DTYPES:
-            raise ValueError(f"precision must be one of {', '.join(STORAGE_DTYPES)}, got {precision!r}")
+            raise OptionError(f"must be one of {', '.join(STORAGE_DTYPES)}, got {precision!r}", field="precision")
         self.device, self.precision, self.store = torch.device(device), precision, STORAGE_DTYPES[precision]
         n, k = avatar.num_gaussians, avatar.num_expressions
         self.widths = [getattr(avatar.neutral, p)[0].numel() if n else 0 for p in _PROPERTIES]

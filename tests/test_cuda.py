@@ -15,6 +15,7 @@ from splat_scenes import assert_same_image, head_scene, psnr, random_scene
 
 from render_core.camera import orbit
 from render_core.deform import Frame, deform, skin
+from render_core.errors import OptionError
 from render_core.media.pixels import to_rgba8
 from render_core.raster import (
     RasterOutput,
@@ -267,7 +268,7 @@ def test_bench_and_cli_refuse_cuda_with_the_reason(capsys):
         bench_raster_backward(gaussians=100, size=16, device="cuda")
     assert main(["bench", "render", "--backend", "cuda", "--json"]) == 1
     err = capsys.readouterr()
-    assert "backend 'cuda' is unavailable here: no CUDA device" in err.err and err.out == ""
+    assert "backend: 'cuda' is unavailable here: no CUDA device" in err.err and err.out == ""
     assert main(["bench", "raster-backward", "--device", "cuda", "--json"]) == 1
     with pytest.raises(ValueError, match="bf16"):
         bench_render("reference", gaussians=100, blendshapes=2, size=16, precision="bf16")
@@ -277,7 +278,7 @@ def test_bench_and_cli_refuse_cuda_with_the_reason(capsys):
 def test_training_on_cuda_without_it_says_why():
     from render_core.train.trainer import raster_step
 
-    with pytest.raises(RuntimeError, match="device='cuda'.*no CUDA device"):
+    with pytest.raises(OptionError, match="device='cuda'.*no CUDA device"):
         raster_step("cuda")
     with pytest.raises(ValueError, match="'cpu' or 'cuda'"):
         raster_step("tpu")

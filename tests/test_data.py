@@ -21,8 +21,6 @@ from render_core.data import (
     load_frame_file,
     read_dataset,
     read_metrical,
-    run_convert,
-    run_validate,
     split_indices,
     validate_dataset,
     write_dataset,
@@ -31,6 +29,7 @@ from render_core.errors import DatasetError
 from render_core.media.files import write_image
 from render_core.media.pixels import to_uint8
 from render_core.rotation import axis_angle_to_matrix, matrix_to_rot6d
+from render_core.tools.cli import main as cli
 
 N, H, W, NK = 6, 16, 16, 4
 JOINTS = ["root", "neck", "jaw", "eye_l", "eye_r"]
@@ -547,7 +546,11 @@ def test_metrical_problems_are_named(tmp_path):
 
 
 # ------------------------------------------------------------------------------------------------ commands
-def test_run_validate_prints_every_problem(good, copy, capsys):
+def run_validate(directory, as_json=False) -> int:
+    return cli(["data", "validate", str(directory), *(["--json"] if as_json else [])])
+
+
+def test_data_validate_prints_every_problem(good, copy, capsys):
     assert run_validate(good) == 0
     assert "valid blendsplat-tracked-video v1, 6 frames of 16x16" in capsys.readouterr().out
     assert run_validate(good, as_json=True) == 0
@@ -562,9 +565,10 @@ def test_run_validate_prints_every_problem(good, copy, capsys):
     assert json.loads(capsys.readouterr().out)["problems"] == validate_dataset(copy)
 
 
-def test_run_convert_prints_json(tmp_path, capsys):
+def test_data_convert_prints_json(tmp_path, capsys):
     make_metrical(tmp_path / "subject", n=4)
-    assert run_convert(tmp_path / "subject", tmp_path / "out", n_expression=20, test_frames=2) == 0
+    assert cli(["data", "convert", str(tmp_path / "subject"), "--out", str(tmp_path / "out"), "--n-expression", "20",
+                "--test-frames", "2"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert out == {"path": str(tmp_path / "out"), "frames": 4, "width": 16, "height": 12, "fps": 30.0,
                    "face_model": "flame", "expressions": 20, "train": 2, "test": 2}

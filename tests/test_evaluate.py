@@ -13,7 +13,8 @@ import torch
 
 from render_core.errors import DatasetError
 from render_core.evaluation.metrics import PSNR_CAP, psnr, psnr_from_mse, psnr_masked, ssim
-from render_core.evaluation.report import evaluate, run_eval
+from render_core.evaluation.report import evaluate
+from render_core.tools.cli import main as cli
 
 
 def _image(seed: int = 0, h: int = 24, w: int = 20) -> torch.Tensor:
@@ -224,7 +225,7 @@ def test_evaluate_all_frames_in_batches_and_from_a_bundle(scene, capsys, monkeyp
     assert other["bundle"] == str(root / "avatar.bsplat")
     assert other["psnr"] == pytest.approx(one["psnr"], abs=1e-3)  # batch size does not matter
 
-    assert run_eval(root / "avatar.bsplat", root / "ds", as_json=True) == 0
+    assert cli(["eval", "--bundle", str(root / "avatar.bsplat"), "--data", str(root / "ds"), "--json"]) == 0
     printed = json.loads(capsys.readouterr().out)
     assert {"psnr", "ssim", "psnr_head", "frames"} <= set(printed) and printed["lpips"] is None
 
@@ -242,7 +243,10 @@ def test_evaluate_reports_lpips_when_its_weights_are_local(scene, monkeypatch, t
     assert all(r["lpips"] is not None and r["lpips"] > 0 for r in result["per_frame"])
     assert result["lpips"] == pytest.approx(np.mean([r["lpips"] for r in result["per_frame"]]))
     assert any("alex.safetensors" in n for n in result["notes"])
-    assert run_eval(avatar, root / "ds", as_json=False) == 0
+    from render_core.bundle import write_bundle
+
+    write_bundle(avatar, tmp_path / "a.bsplat")
+    assert cli(["eval", "--bundle", str(tmp_path / "a.bsplat"), "--data", str(root / "ds")]) == 0
     out = capsys.readouterr().out
     assert "LPIPS " in out and "LPIPS n/a" not in out
     # An unusable file: lpips is null and the note says why; the other metrics are unaffected.
@@ -281,8 +285,14 @@ def test_evaluate_without_matplotlib_writes_the_numbers_and_says_why_the_sheet_w
     assert saved["plots"] == {"skipped": reason} and saved["frames"] == result["frames"] >= 1
     assert math.isfinite(saved["psnr"]) and math.isfinite(saved["ssim"])
     assert sorted(p.name for p in tmp_path.iterdir()) == ["report.json"]  # no temporary file left behind
-    assert run_eval(avatar, root / "ds", contact_sheet=tmp_path / "sheet.png") == 0
-    assert f"contact sheet skipped: {reason}" in capsys.readouterr().out  # the command line says so
+    from render_core.bundle import write_bundle
+
+    write_bundle(avatar, tmp_path / "a.bsplat")
+    caplog.clear()
+    assert cli(["eval", "--bundle", str(tmp_path / "a.bsplat"), "--data", str(root / "ds"),
+                "--contact-sheet", str(tmp_path / "sheet.png")]) == 0
+    assert f"contact sheet skipped: {reason}" in caplog.text  # the command line says so (stderr)
+    assert "PSNR" in capsys.readouterr().out
 
 
 def test_the_metrics_examples_run():

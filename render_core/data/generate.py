@@ -53,6 +53,7 @@ import torch
 from torch import Tensor
 
 from ..camera import Cameras, look_at
+from ..errors import OptionError
 from ..facemodel.model import FaceModel
 from ..media.files import write_image
 from ..media.pixels import to_uint8
@@ -230,7 +231,7 @@ def _gaze_track(n: int, lo: int, hi: int, limit: float, g: torch.Generator) -> T
 def make_script(model: FaceModel, frames: int, seed: int) -> Script:
     """The seeded performance of ``frames`` frames for ``model`` (module docstring: what moves, and the split)."""
     if frames < 2:
-        raise ValueError(f"need at least 2 frames (one training, one test), got {frames}")
+        raise OptionError(f"need at least 2 (one training, one test), got {frames}", field="frames")
     g = torch.Generator().manual_seed(int(seed))
     n = frames
     n_test = held_out_count(n)
@@ -460,7 +461,7 @@ def synth_dataset(out_dir, frames: int, size: int, seed: int, facemodel: FaceMod
     from .portable import Tracking, write_dataset
 
     if size < 8:
-        raise ValueError(f"size must be at least 8 pixels, got {size}")
+        raise OptionError(f"must be at least 8 pixels, got {size}", field="size")
     if facemodel is None:
         from ..facemodel.open_head import open_head
 

@@ -26,7 +26,7 @@ import torch
 
 from ..errors import DatasetError
 from ..rotation import matrix_to_quat, rot6d_to_matrix
-from .portable import Tracking, _raise, _read_image, _tracking_problems, read_dataset, write_dataset
+from .portable import Tracking, _raise, _read_image, _tracking_problems, write_dataset
 
 try:  # numpy >= 2
     from numpy._core import multiarray as _multiarray
@@ -227,22 +227,3 @@ def convert_metrical(src: str | os.PathLike, out_dir: str | os.PathLike, *, n_ex
             yield rgba[..., :3]
 
     return write_dataset(out_dir, frames(), masks, tracking, image_format=image_format)
-
-
-def run_convert(src: str | os.PathLike, out: str | os.PathLike, *, n_expression: int = 50, test_frames: int = 350,
-                trusted: bool = False, fps: float = 30.0, image_format: str = "png") -> int:
-    """``blendsplat data convert SRC --out DIR``: metrical-tracker / INSTA folder -> portable dataset; prints a JSON
-    summary on stdout and returns 0 (errors raise DatasetError, which the command reports with exit status 1)."""
-    import json
-    import logging
-    import sys
-
-    logging.getLogger("blendsplat").info("converting %s -> %s", src, out)
-    path = convert_metrical(src, out, n_expression=n_expression, test_frames=test_frames, trusted=trusted, fps=fps,
-                            image_format=image_format)
-    tr = read_dataset(path).tracking
-    sys.stdout.write(json.dumps({"path": str(path), "frames": tr.frames, "width": tr.width, "height": tr.height,
-                                 "fps": tr.fps, "face_model": tr.face_model, "expressions": len(tr.expression_names),
-                                 "train": len(tr.train), "test": len(tr.test)}, indent=2) + "\n")
-    sys.stdout.flush()
-    return 0

@@ -928,26 +928,3 @@ def write_dataset(out_dir: str | os.PathLike, frames: Iterable[np.ndarray], mask
 
 
 # ---------------------------------------------------------------------------------------------------- commands
-def run_validate(directory: str | os.PathLike, *, as_json: bool = False) -> int:
-    """``blendsplat data validate DIR``: print every problem (one ``field or file: message`` line each, or one JSON
-    object with ``--json``) to stdout; exit status 1 if there is any, else 0."""
-    import sys
-
-    problems = validate_dataset(directory)
-    summary: dict = {"path": str(directory), "valid": not problems, "problems": problems}
-    if not problems:
-        tr = read_dataset(directory).tracking
-        summary.update(format=FORMAT, version=VERSION, frames=tr.frames, width=tr.width, height=tr.height,
-                       fps=tr.fps, face_model=tr.face_model, expressions=len(tr.expression_names),
-                       joints=len(tr.joint_names), train=len(tr.train), test=len(tr.test))
-    if as_json:
-        sys.stdout.write(json.dumps(summary, indent=2) + "\n")
-    elif problems:
-        sys.stdout.write("".join(f"{p}\n" for p in problems))
-        print(f"{directory}: {len(problems)} problem{'s' if len(problems) > 1 else ''}", file=sys.stderr)
-    else:
-        sys.stdout.write(f"{directory}: valid {FORMAT} v{VERSION}, {summary['frames']} frames of "
-                         f"{summary['width']}x{summary['height']} at {summary['fps']:g} fps, face model "
-                         f"{summary['face_model']!r}, train {summary['train']} / test {summary['test']}\n")
-    sys.stdout.flush()
-    return 1 if problems else 0

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import json
 import logging
-import sys
 import time
 from pathlib import Path
 
@@ -32,7 +31,7 @@ from torch import Tensor
 
 from ..atomic import atomic_path
 from ..avatar import Avatar
-from ..errors import DatasetError
+from ..errors import DatasetError, OptionError
 from .metrics import PSNR_CAP, psnr, psnr_masked, ssim
 from .plot import PlotsUnavailable, write_contact_sheet
 
@@ -64,7 +63,7 @@ def _lpips_metric(width: int, height: int):
 def split_indices(dataset, split: str) -> np.ndarray:
     """The frame indices of ``split``: "test" (held out), "train" or "all"."""
     if split not in SPLITS:
-        raise ValueError(f"split must be one of {', '.join(SPLITS)}, got {split!r}")
+        raise OptionError(f"must be one of {', '.join(SPLITS)}, got {split!r}", field="split")
     if split == "all":
         return np.arange(len(dataset), dtype=np.int64)
     return np.asarray(getattr(dataset.tracking, split), dtype=np.int64).reshape(-1)
@@ -97,7 +96,7 @@ def evaluate(bundle_or_avatar, data_dir, split: str = "test", batch: int = 4, co
 
     t_start = time.perf_counter()
     if batch < 1:
-        raise ValueError(f"batch must be at least 1, got {batch}")
+        raise OptionError(f"must be at least 1, got {batch}", field="batch")
     if isinstance(bundle_or_avatar, Avatar):
         avatar, bundle = bundle_or_avatar, None
     else:
@@ -173,24 +172,3 @@ def evaluate(bundle_or_avatar, data_dir, split: str = "test", batch: int = 4, co
         with atomic_path(report) as tmp:
             tmp.write_text(json.dumps(result, indent=2, allow_nan=False) + "\n", encoding="utf-8")
     return result
-
-
-def _fmt(v: float | None, digits: int) -> str:
-    return "n/a" if v is None else f"{v:.{digits}f}"
-
-
-def run_eval(bundle, data, *, as_json: bool = False, split: str = "test", batch: int = 4, report=None,
-             contact_sheet=None) -> int:
-    """``blendsplat eval --bundle BUNDLE --data DATA [--json]``: print the evaluation (one JSON object with
-    ``--json``, else one summary line) to stdout; exit status 0."""
-    result = evaluate(bundle, data, split=split, batch=batch, contact_sheet=contact_sheet, report=report)
-    if as_json:
-        sys.stdout.write(json.dumps(result, indent=2, allow_nan=False) + "\n")
-    else:
-        sys.stdout.write(f"{bundle} on {data} ({result['frames']} {split} frames): PSNR {_fmt(result['psnr'], 2)} dB, "
-                         f"SSIM {_fmt(result['ssim'], 4)}, head PSNR {_fmt(result['psnr_head'], 2)} dB, "
-                         f"LPIPS {_fmt(result['lpips'], 4)}\n")
-        if "skipped" in result.get("plots", {}):
-            sys.stdout.write(f"contact sheet skipped: {result['plots']['skipped']}\n")
-    sys.stdout.flush()
-    return 0

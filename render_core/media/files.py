@@ -8,6 +8,7 @@ import numpy as np
 import OpenImageIO as oiio
 from torch import Tensor
 
+from ..errors import OptionError
 from .pixels import to_uint8
 
 FORMATS = ("png", "exr", "mp4")  # offline rendering
@@ -22,7 +23,7 @@ def write_image(path: str | Path, pixels: Tensor | np.ndarray) -> None:
     path = Path(path)
     fmt = IMAGE_FORMATS.get(path.suffix.lower())
     if fmt is None:
-        raise ValueError(f"unsupported image format {path.suffix!r}; use {', '.join(IMAGE_FORMATS)}")
+        raise OptionError(f"unsupported image format {path.suffix!r}; use {', '.join(IMAGE_FORMATS)}", field="format")
     if isinstance(pixels, Tensor):
         pixels = pixels.detach().cpu().numpy()
     if fmt == "exr":
@@ -56,7 +57,7 @@ class VideoWriter:
         import av
 
         if width % 2 or height % 2:
-            raise ValueError(f"H.264 video needs an even width and height, got {width}x{height}")
+            raise OptionError(f"H.264 video needs an even width and height, got {width}x{height}", field="size")
         self._container = av.open(str(path), mode="w")
         self._stream = self._container.add_stream("libx264", rate=fps)
         self._stream.width, self._stream.height = width, height

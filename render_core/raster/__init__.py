@@ -17,7 +17,7 @@ from torch import Tensor
 
 from ..camera import Cameras
 from ..deform import Splats
-from ..errors import ShapeError
+from ..errors import OptionError, ShapeError
 from . import gsplat_backend, native, reference
 from .splats import RasterOutput, ShadedSplats
 
@@ -53,15 +53,15 @@ def unavailable_reason(name: str) -> str | None:
 
 
 def check_backend(name: str | None) -> str:
-    """The backend to use for ``name`` (None: the default); ValueError naming the available ones, and for a known
+    """The backend to use for ``name`` (None: the default); OptionError naming the available ones, and for a known
     backend that cannot run here, why (no CUDA device, gsplat not installed, native extension not built)."""
     name = name or default_backend()
     if name not in BACKENDS:
         available = ", ".join(backend_names())
         if name in KNOWN_BACKENDS:
-            raise ValueError(f"backend {name!r} is unavailable here: {unavailable_reason(name)}; available: "
-                             f"{available}")
-        raise ValueError(f"unknown backend {name!r}; available: {available}")
+            raise OptionError(f"{name!r} is unavailable here: {unavailable_reason(name)}; available: {available}",
+                              field="backend")
+        raise OptionError(f"unknown backend {name!r}; available: {available}", field="backend")
     return name
 
 
@@ -85,11 +85,11 @@ DIFFERENTIABLE: dict[str, Differentiable] = {"native": _native_differentiable, "
 
 def differentiable(name: str) -> Differentiable:
     """The differentiable rasterization step of backend ``name`` (for training); the errors of
-    :func:`check_backend` where it cannot run here, a ValueError for a backend without one."""
+    :func:`check_backend` where it cannot run here, an OptionError for a backend without one."""
     name = check_backend(name)
     if name not in DIFFERENTIABLE:
-        raise ValueError(f"backend {name!r} has no differentiable step for training; those that have: "
-                         f"{', '.join(sorted(DIFFERENTIABLE))}")
+        raise OptionError(f"{name!r} has no differentiable step for training; those that have: "
+                          f"{', '.join(sorted(DIFFERENTIABLE))}", field="backend")
     return DIFFERENTIABLE[name]
 
 

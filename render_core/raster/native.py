@@ -26,7 +26,7 @@ from torch import Tensor
 
 from ..avatar import Avatar, Gaussians, check_raster_mode, sh_coeff_count
 from ..camera import Cameras
-from ..errors import ShapeError
+from ..errors import OptionError, ShapeError
 from .splats import RasterOutput, ShadedSplats
 
 try:
@@ -63,8 +63,8 @@ def simd_choice(simd: str | None = None) -> str:
     if choice == "auto":
         return verified_fastest_path()
     if choice not in simd_paths():
-        raise ValueError(f"{source}={choice!r} is not a SIMD path this CPU and build run; available: "
-                         f"{', '.join(simd_paths())} (or auto)")
+        raise OptionError(f"{choice!r} is not a SIMD path this CPU and build run; available: "
+                          f"{', '.join(simd_paths())} (or auto)", field=source)
     return choice
 
 
@@ -251,7 +251,7 @@ class NativeAvatar:
         if precision is None:
             precision = avatar.precision
         if precision not in PRECISIONS:
-            raise ValueError(f"precision must be one of {PRECISIONS}, got {precision!r}")
+            raise OptionError(f"must be one of {PRECISIONS}, got {precision!r}", field="precision")
         store = torch.float16 if precision == "fp16" else torch.float32
         n, k, j, m = avatar.num_gaussians, avatar.num_expressions, avatar.num_joints, avatar.num_mouth
         c = sh_coeff_count(avatar.sh_degree)

@@ -216,9 +216,30 @@ def cmd_facemodel_import_flame(args: argparse.Namespace) -> int:
 
 
 def cmd_data_validate(args: argparse.Namespace) -> int:
-    from ..data import run_validate
+    """Every problem, one ``field or file: message`` line each (or one JSON object with --json); exit 1 if any."""
+    from ..data import read_dataset, validate_dataset
+    from ..data.portable import FORMAT, VERSION
 
-    return run_validate(args.dir, as_json=args.json)
+    problems = validate_dataset(args.dir)
+    summary: dict = {"path": str(args.dir), "valid": not problems, "problems": problems}
+    if not problems:
+        tr = read_dataset(args.dir).tracking
+        summary.update(format=FORMAT, version=VERSION, **_dataset_counts(tr), joints=len(tr.joint_names))
+    if args.json:
+        _emit(summary)
+    elif problems:
+        sys.stdout.write("".join(f"{p}\n" for p in problems))
+        log.error("%s: %d problem%s", args.dir, len(problems), "s" if len(problems) > 1 else "")
+    else:
+        sys.stdout.write(f"{args.dir}: valid {FORMAT} v{VERSION}, {summary['frames']} frames of "
+                         f"{summary['width']}x{summary['height']} at {summary['fps']:g} fps, face model "
+                         f"{summary['face_model']!r}, train {summary['train']} / test {summary['test']}\n")
+    return 1 if problems else 0
+
+
+def _dataset_counts(tr) -> dict:
+    return {"frames": tr.frames, "width": tr.width, "height": tr.height, "fps": tr.fps, "face_model": tr.face_model,
+            "expressions": len(tr.expression_names), "train": len(tr.train), "test": len(tr.test)}
 
 
 def cmd_train(args: argparse.Namespace) -> int:
@@ -253,10 +274,24 @@ def cmd_train(args: argparse.Namespace) -> int:
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
-    from ..evaluation.report import run_eval
+    """The evaluation as one JSON object (--json) or one summary line."""
+    from ..evaluation.report import evaluate
 
-    return run_eval(args.bundle, args.data, as_json=args.json, split=args.split, batch=args.batch,
-                    report=args.report, contact_sheet=args.contact_sheet)
+    r = evaluate(args.bundle, args.data, split=args.split, batch=args.batch, contact_sheet=args.contact_sheet,
+                 report=args.report)
+    if args.json:
+        sys.stdout.write(json.dumps(r, indent=2, allow_nan=False) + "\n")
+        return 0
+
+    def fmt(v: float | None, digits: int) -> str:
+        return "n/a" if v is None else f"{v:.{digits}f}"
+
+    sys.stdout.write(f"{args.bundle} on {args.data} ({r['frames']} {args.split} frames): PSNR {fmt(r['psnr'], 2)} "
+                     f"dB, SSIM {fmt(r['ssim'], 4)}, head PSNR {fmt(r['psnr_head'], 2)} dB, "
+                     f"LPIPS {fmt(r['lpips'], 4)}\n")
+    if "skipped" in r.get("plots", {}):
+        log.warning("contact sheet skipped: %s", r["plots"]["skipped"])
+    return 0
 
 
 def cmd_data_synth(args: argparse.Namespace) -> int:
@@ -270,10 +305,14 @@ def cmd_data_synth(args: argparse.Namespace) -> int:
 
 
 def cmd_data_convert(args: argparse.Namespace) -> int:
-    from ..data import run_convert
+    """metrical-tracker / INSTA folder -> portable dataset; a JSON summary."""
+    from ..data import convert_metrical, read_dataset
 
-    return run_convert(args.src, args.out, n_expression=args.n_expression, test_frames=args.test_frames,
-                       trusted=args.trusted, fps=args.fps, image_format=args.image_format)
+    log.info("converting %s -> %s", args.src, args.out)
+    path = convert_metrical(args.src, args.out, n_expression=args.n_expression, test_frames=args.test_frames,
+                            trusted=args.trusted, fps=args.fps, image_format=args.image_format)
+    _emit({"path": str(path), **_dataset_counts(read_dataset(path).tracking)})
+    return 0
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -25,6 +25,7 @@ from torch import Tensor
 
 from ..avatar import Avatar, Gaussians, sh_coeff_count
 from ..camera import front_camera
+from ..errors import OptionError
 from ..facemodel import FaceModel
 from ..rotation import matrix_to_quat, quat_multiply
 from ..sh import rotate_sh
@@ -170,7 +171,8 @@ def init_avatar(
     ``albedo`` maps rest positions [N, 3] to linear RGB [N, 3] (default: a uniform skin tone).
     """
     if gaussians < 1 or mouth < 2:
-        raise ValueError("need at least one face Gaussian and two mouth Gaussians")
+        raise OptionError(f"need at least one face Gaussian and two mouth Gaussians, got {gaussians} and {mouth}",
+                          field="gaussians" if gaussians < 1 else "mouth")
     g = torch.Generator().manual_seed(seed)
     verts, faces = model.template.double(), model.faces
     tri_idx, bary = poisson_disk(verts, faces, gaussians, g)

@@ -28,6 +28,7 @@ import torch
 from torch import Tensor, nn
 
 from ..avatar import Avatar, Gaussians, sh_coeff_count
+from ..errors import OptionError
 from ..facemodel import FaceModel
 from .geometry import consistency_range, consistency_weights, displacement_magnitudes
 
@@ -73,7 +74,7 @@ class TrainableAvatar(nn.Module):
     def __init__(self, avatar: Avatar, d: Tensor, eps: float, d_max: float, consistency: str = "all"):
         super().__init__()
         if consistency not in CONSISTENCY:
-            raise ValueError(f"consistency must be one of {', '.join(CONSISTENCY)}, got {consistency!r}")
+            raise OptionError(f"must be one of {', '.join(CONSISTENCY)}, got {consistency!r}", field="consistency")
         avatar = avatar.to(torch.float32)
         self.consistency = consistency
         self.eps, self.d_max = float(eps), float(d_max)

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, replace
 
+from ..errors import OptionError
+
 
 @dataclass(frozen=True)
 class Preset:
@@ -70,5 +72,5 @@ def get_preset(preset: str | Preset) -> Preset:
     if isinstance(preset, Preset):
         return preset
     if preset not in PRESETS:
-        raise ValueError(f"unknown preset {preset!r}; available: {', '.join(PRESETS)}")
+        raise OptionError(f"unknown preset {preset!r}; available: {', '.join(PRESETS)}", field="preset")
     return PRESETS[preset]

@@ -42,7 +42,7 @@ from ..camera import Cameras
 from ..data import read_dataset
 from ..data.frames import check_compatible, frame_inputs, targets
 from ..deform import Frame, Splats, shade, skin
-from ..errors import DatasetError
+from ..errors import DatasetError, OptionError
 from ..facemodel import FaceModel, read_facemodel
 from . import losses
 from .densify import DensifyStrategy
@@ -166,13 +166,13 @@ def raster_step(device: str) -> raster.Differentiable:
     """The differentiable rasterization step for training on ``device`` ("cpu": the native backend's C++
     backward; "cuda": gsplat's kernels), from the backend registry; an error naming what is missing otherwise."""
     if device not in DEVICES:
-        raise ValueError(f"device must be 'cpu' or 'cuda', got {device!r}")
+        raise OptionError(f"must be 'cpu' or 'cuda', got {device!r}", field="device")
     backend = DEVICES[device]
     try:
         return raster.differentiable(backend)
-    except ValueError:
-        raise RuntimeError(f"training with device={device!r} needs the {backend} backend: "
-                           f"{raster.unavailable_reason(backend)}") from None
+    except OptionError:
+        raise OptionError(f"training with device={device!r} needs the {backend} backend: "
+                          f"{raster.unavailable_reason(backend)}", field="device") from None
 
 
 def forward(model: TrainableAvatar, frame: Frame, cameras: Cameras, sh_degree: int | None = None, *,
@@ -259,9 +259,9 @@ def load_checkpoint(path: Path) -> dict:
     """One of our checkpoints, loaded with ``weights_only=True`` (tensors, numbers, strings, lists, dicts)."""
     state = torch.load(path, map_location="cpu", weights_only=True)
     if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT:
-        raise ValueError(f"{path} is not a blendsplat training checkpoint")
+        raise OptionError(f"{path} is not a blendsplat training checkpoint", field="checkpoint")
     if state.get("version") != CHECKPOINT_VERSION:
-        raise ValueError(f"{path}: checkpoint version {state.get('version')} is not {CHECKPOINT_VERSION}")
+        raise OptionError(f"{path}: version {state.get('version')} is not {CHECKPOINT_VERSION}", field="checkpoint")
     return state
 
 
