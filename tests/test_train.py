@@ -15,12 +15,13 @@ from render_core.data import read_dataset
 from render_core.data.frames import frame_inputs, targets
 from render_core.data.generate import synth_dataset
 from render_core.deform import blend
+from render_core.evaluation.metrics import psnr, ssim
 from render_core.renderer import AvatarRenderer
 from render_core.rotation import matrix_to_quat, quat_multiply
 from render_core.train import CONSISTENCY, Outcome, Progress, TrainableAvatar, Trainer, get_preset, train
 from render_core.train.geometry import closest_points, consistency_range, displacement_magnitudes
 from render_core.train.initialize import init_avatar
-from render_core.train.losses import MouthCylinder, psnr, ssim
+from render_core.train.losses import MouthCylinder
 from render_core.train.trainer import forward, last_checkpoint, load_checkpoint, make_optimizer, raster_step
 from tests.test_initialize import tetra_model
 

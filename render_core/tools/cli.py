@@ -25,11 +25,14 @@ class _Bar:
     def __init__(self, desc: str, unit: str):
         self.desc, self.unit, self.bar = desc, unit, None
 
-    def __call__(self, done: int, total: int) -> None:
-        if self.bar is None:
+    def __call__(self, done: int, total: int, **postfix: str) -> None:
+        if self.bar is None:  # a resumed run starts part way: the bar starts where the first report is
             from tqdm import tqdm
 
-            self.bar = tqdm(total=total, desc=self.desc, unit=self.unit, file=sys.stderr)
+            self.bar = tqdm(total=total, initial=max(0, done - 1), desc=self.desc, unit=self.unit, file=sys.stderr,
+                            dynamic_ncols=True)
+        if postfix:
+            self.bar.set_postfix(postfix, refresh=False)
         self.bar.update(done - self.bar.n)
 
     def __enter__(self) -> _Bar:
@@ -250,25 +253,13 @@ def cmd_train(args: argparse.Namespace) -> int:
         preset = preset.with_(gaussians=args.gaussians, mouth=max(2, min(preset.mouth, args.gaussians // 10)),
                               max_gaussians=max(args.gaussians, preset.max_gaussians * args.gaussians
                                                 // preset.gaussians))
-    bar = None
+    with _Bar("train", "it") as bar:
+        def progress(event) -> None:  # iteration, loss and PSNR; tqdm gives the ETA
+            bar(event.iteration, event.total, loss=f"{event.losses['loss']:.4f}", psnr=f"{event.psnr:.2f}")
 
-    def progress(event) -> None:  # a tqdm bar on stderr: iteration, loss, PSNR, ETA
-        nonlocal bar
-        if bar is None:
-            from tqdm import tqdm
-
-            bar = tqdm(total=event.total, initial=event.iteration - 1, file=sys.stderr, desc="train", unit="it",
-                       dynamic_ncols=True)
-        bar.set_postfix(loss=f"{event.losses['loss']:.4f}", psnr=f"{event.psnr:.2f}", refresh=False)
-        bar.update(1)
-
-    try:
         summary = train(args.data, args.out, workdir=args.workdir, preset=preset, device=args.device,
                         resume=args.resume, seed=args.seed, iterations=args.iterations,
                         consistency=args.consistency, on_progress=None if args.quiet else progress)
-    finally:
-        if bar is not None:
-            bar.close()
     _emit(summary)
     return 0
 

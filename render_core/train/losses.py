@@ -11,7 +11,6 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ..evaluation.metrics import psnr as psnr  # re-exported: the training log's PSNR
 from ..evaluation.metrics import ssim
 
 RGB_L1, RGB_DSSIM = 0.8, 0.2

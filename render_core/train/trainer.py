@@ -43,6 +43,7 @@ from ..data import read_dataset
 from ..data.frames import check_compatible, frame_inputs, targets
 from ..deform import Frame, Splats, shade, skin
 from ..errors import DatasetError, OptionError
+from ..evaluation.metrics import psnr
 from ..facemodel import FaceModel, read_facemodel
 from . import losses
 from .densify import DensifyStrategy
@@ -500,13 +501,13 @@ class Trainer:
         self.iteration = it
         self._steps += 1
         values = {"loss": float(loss.detach()), **{k: float(v.detach()) for k, v in terms.items()}}
-        psnr = losses.psnr(rgb, rgb_t)
+        step_psnr = psnr(rgb, rgb_t)
         self._seconds += clock() - t0
-        self._pending = {"iteration": it, **values, "psnr": psnr, "frame": index, "sh_degree": degree,
+        self._pending = {"iteration": it, **values, "psnr": step_psnr, "frame": index, "sh_degree": degree,
                          "gaussians": model.num_gaussians, "seconds": round(self.elapsed, 3)}
         if it % cfg.log_every == 0 or it == 1 or it == self.total:
             self._write_log()
-        return Progress(iteration=it, total=self.total, losses=values, psnr=psnr, gaussians=model.num_gaussians,
+        return Progress(iteration=it, total=self.total, losses=values, psnr=step_psnr, gaussians=model.num_gaussians,
                         elapsed=self.elapsed, eta=(self.total - it) * self._seconds / self._steps, frame=index,
                         sh_degree=degree, densified=densified)
 
@@ -594,7 +595,7 @@ class Trainer:
                                     rasterize=self.rasterize, threads=self.preset.threads)
                 want, _ = self._targets(int(self.train_idx[j]))
                 out["frames"].append(int(self.train_idx[j]))
-                out["psnr"].append(round(losses.psnr(rgb, want), 4))
+                out["psnr"].append(round(psnr(rgb, want), 4))
         out["psnr_mean"] = round(float(np.mean(out["psnr"])), 4) if out["psnr"] else None
         return out
 
