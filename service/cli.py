@@ -41,6 +41,14 @@ def cmd_bench_stream(args: argparse.Namespace) -> int:
     return 0 if result["frames"] else 1
 
 
+def cmd_bench_load(args: argparse.Namespace) -> int:
+    from .bench_load import bench_load
+
+    result = bench_load(args.bundle, size=args.size, backend=args.backend, threads=args.threads)
+    print(json.dumps(result) if args.json else json.dumps(result, indent=2))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     from .bench_stream import CODECS
 
@@ -70,6 +78,15 @@ def build_parser() -> argparse.ArgumentParser:
                    help="the server's /metrics URL: report its resident memory before and at the end")
     b.add_argument("--json", action="store_true", help="one JSON line")
     b.set_defaults(fn=cmd_bench_stream)
+
+    b = p.bench_commands.add_parser("load", help="cold and warm load of a bundle from a store to its first frame: "
+                                                 "milliseconds per stage, resident memory, full verification")
+    b.add_argument("--bundle", required=True, type=Path)
+    b.add_argument("--size", type=int, default=512, help="the first frame's width and height")
+    b.add_argument("--backend", default=None, help="renderer backend (default: the service's default)")
+    b.add_argument("--threads", type=int, default=0, help="native threads (0: all)")
+    b.add_argument("--json", action="store_true", help="one JSON line")
+    b.set_defaults(fn=cmd_bench_load)
     return p
 
 

@@ -1,0 +1,111 @@
+"""`blendsplat bench load`: what it costs to bring one avatar from the bundle store to its first frame.
+
+The bundle is committed to a temporary store (as an upload is), then loaded twice, each time in a fresh process
+so that memory and caches start clean: ``cold`` after the file is flushed and dropped from the page cache
+(``posix_fadvise(DONTNEED)``), ``warm`` with the file in the page cache. Each load is the service's own cache-miss
+path (:func:`service.cache.read_entry`) followed by one frame at the avatar's default camera. ``resident_bytes``
+is the cold process's resident-memory growth (anonymous plus file-backed pages) from before the load to after the
+first frame. ``verify_ms`` is the full verification (digest, shapes, finite values) that a bundle loaded from
+outside a store pays.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from render_core.bundle import validate_bundle
+
+from .cache import read_entry
+from .store import BundleStore
+
+AVATAR_ID = "bench"
+
+
+def _resident_bytes() -> int:
+    """This process's resident anonymous plus file-backed memory (Linux /proc)."""
+    fields = {}
+    for line in Path("/proc/self/status").read_text().splitlines():
+        name, _, value = line.partition(":")
+        if name in ("RssAnon", "RssFile"):
+            fields[name] = int(value.split()[0]) * 1024
+    return sum(fields.values())
+
+
+def _drop_from_page_cache(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+        os.posix_fadvise(fd, 0, 0, os.POSIX_FADV_DONTNEED)
+    finally:
+        os.close(fd)
+
+
+def load_once(path: Path, size: int, backend: str | None, threads: int) -> dict:
+    """One load from the store and one frame, in this process: stage milliseconds and the resident growth."""
+    import torch
+
+    from render_core.deform import Frame
+    from render_core.drive import default_camera
+    from render_core.raster import native
+
+    if native.available():
+        native.simd_choice(None)  # the one-off SIMD self-check belongs to process start, not to a load
+    before = _resident_bytes()
+    seconds: dict[str, float] = {}
+    t0 = time.perf_counter()
+    entry = read_entry(AVATAR_ID, path, backend, threads, seconds=seconds)
+    t1 = time.perf_counter()
+    avatar = entry.avatar
+    frame = Frame.from_params(avatar, expression=torch.zeros(1, avatar.num_expressions))
+    entry.renderer.render(frame, default_camera(avatar, size, size))
+    t2 = time.perf_counter()
+    ms = {"read": seconds["read"] * 1e3, "renderer": seconds["renderer"] * 1e3, "first_frame": (t2 - t1) * 1e3,
+          "total": (t2 - t0) * 1e3}
+    return {"ms": {k: round(v, 2) for k, v in ms.items()}, "resident_bytes": _resident_bytes() - before,
+            "backend": entry.renderer.backend}
+
+
+def _load_in_fresh_process(path: Path, size: int, backend: str | None, threads: int) -> dict:
+    args = json.dumps({"path": str(path), "size": size, "backend": backend, "threads": threads})
+    proc = subprocess.run([sys.executable, "-m", "service.bench_load", args], capture_output=True, text=True,
+                          check=False)
+    if proc.returncode != 0:
+        raise RuntimeError(f"the load process failed (exit {proc.returncode}): {proc.stderr.strip()[-2000:]}")
+    return json.loads(proc.stdout)
+
+
+def bench_load(bundle: str | os.PathLike, *, size: int = 512, backend: str | None = None, threads: int = 0) -> dict:
+    """Cold and warm loads of ``bundle`` from a temporary store (module docstring); a JSON-ready dict."""
+    bundle = Path(bundle)
+    t0 = time.perf_counter()
+    manifest = validate_bundle(bundle)
+    verify_ms = (time.perf_counter() - t0) * 1e3
+    with tempfile.TemporaryDirectory(prefix="blendsplat-bench-load-") as tmp:
+        store = BundleStore(Path(tmp) / "bundles")
+        fd, staged = store.staging()
+        with os.fdopen(fd, "wb") as out, open(bundle, "rb") as src:
+            shutil.copyfileobj(src, out, 1 << 20)
+        store.commit(staged, AVATAR_ID)
+        path = store.path(AVATAR_ID)
+        _drop_from_page_cache(path)
+        cold = _load_in_fresh_process(path, size, backend, threads)
+        warm = _load_in_fresh_process(path, size, backend, threads)
+    return {
+        "benchmark": "load", "bundle": str(bundle), "schema_version": manifest["schema_version"],
+        "precision": manifest.get("precision"), "gaussians": manifest["counts"]["gaussians"],
+        "mouth_gaussians": manifest["counts"]["mouth"], "size": size, "backend": cold["backend"],
+        "file_bytes": bundle.stat().st_size, "resident_bytes": cold["resident_bytes"],
+        "cold_ms": cold["ms"], "warm_ms": warm["ms"], "verify_ms": round(verify_ms, 2),
+    }
+
+
+if __name__ == "__main__":  # the fresh process of one load: JSON arguments in, JSON figures out
+    a = json.loads(sys.argv[1])
+    sys.stdout.write(json.dumps(load_once(Path(a["path"]), a["size"], a["backend"], a["threads"])) + "\n")

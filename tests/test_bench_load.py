@@ -1,0 +1,44 @@
+"""`blendsplat bench load`: cold and warm loads from a temporary store, each in a fresh process."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from render_core.bundle import write_bundle
+from render_core.errors import BundleError
+from render_core.tools.synth import synth_avatar
+from service.bench_load import bench_load
+from service.cli import main
+
+
+@pytest.fixture(scope="module")
+def bundle(tmp_path_factory):
+    path = tmp_path_factory.mktemp("bench-load") / "a.bundle"
+    write_bundle(synth_avatar(gaussians=300, blendshapes=4, seed=5), path)
+    return path
+
+
+def test_bench_load_reports_cold_and_warm_stages_memory_and_verification(bundle, tmp_path, monkeypatch):
+    monkeypatch.setenv("TMPDIR", str(tmp_path))  # the temporary store goes here, so we can see it is removed
+    r = bench_load(bundle, size=32)
+    assert (r["benchmark"], r["schema_version"], r["gaussians"], r["size"]) == ("load", 1, 300, 32)
+    assert r["file_bytes"] == bundle.stat().st_size and r["resident_bytes"] > 0 and r["verify_ms"] > 0
+    for key in ("cold_ms", "warm_ms"):
+        ms = r[key]
+        assert set(ms) == {"read", "renderer", "first_frame", "total"} and min(ms.values()) > 0
+        assert ms["total"] >= ms["read"] + ms["renderer"]  # the total spans the stages and the frame
+    assert list(tmp_path.iterdir()) == []  # the temporary store is gone
+
+
+def test_bench_load_command_prints_one_json_line_and_refuses_a_broken_bundle(bundle, tmp_path, capsys):
+    assert main(["bench", "load", "--bundle", str(bundle), "--size", "16", "--json"]) == 0
+    out = capsys.readouterr().out
+    assert out.count("\n") == 1 and json.loads(out)["cold_ms"]["total"] > 0
+    broken = tmp_path / "broken.bundle"
+    broken.write_bytes(bundle.read_bytes()[:-100])
+    with pytest.raises(BundleError):
+        bench_load(broken, size=16)
+    assert main(["bench", "load", "--bundle", str(broken)]) == 1
+    assert "blendsplat: error:" in capsys.readouterr().err
