@@ -4,12 +4,18 @@ An entry is a bundle read from the store and packed for the renderer; it counts 
 :attr:`~render_core.renderer.AvatarRenderer.nbytes` (the native packing, or the cuda backend's GPU copy). Sessions
 pin the entries they use; only unpinned entries are evicted. Concurrent requests for one avatar share a single
 load.
+
+A bundle the store recorded as verified loads without the digest and finiteness pass. Each load of a cached
+avatar checks that its file is still the one that was read (inode, size, modification time): a bundle replaced in
+the store, by an upload through another replica, is read again, so no replica keeps serving the old avatar to new
+sessions.
 """
 
 from __future__ import annotations
 
 import asyncio
 import logging
+import os
 import time
 from collections import OrderedDict
 from dataclasses import dataclass, field
@@ -35,6 +41,7 @@ class Loaded:
     digest: str
     file_bytes: int
     memory_bytes: int
+    file_id: tuple[int, int, int]  # (inode, size, mtime ns) of the file that was read
     pins: int = 0
     loaded_at: float = field(default_factory=time.time)
 
@@ -60,6 +67,10 @@ class AvatarCache:
     async def load(self, avatar_id: str) -> Loaded:
         """The avatar, loading it from the store if needed (NotFound, InvalidArgument for a broken bundle)."""
         entry = self._entries.get(avatar_id)
+        if entry is not None and entry.file_id != _file_id(self.store.existing(avatar_id)):
+            log.info("avatar %s was replaced in the store: reading it again", avatar_id)
+            self.unload(avatar_id)  # sessions that hold the old one keep it until they end
+            entry = None
         if entry is not None:
             self.metrics.cache_hits.inc()
             self._entries.move_to_end(avatar_id)
@@ -102,7 +113,7 @@ class AvatarCache:
         return entry is not None
 
     def _read(self, avatar_id: str, path: Path) -> Loaded:
-        return read_entry(avatar_id, path, self.backend, self.threads)
+        return read_entry(avatar_id, path, self.backend, self.threads, verify=not self.store.verified(path))
 
     def _make_room(self, need: int, for_id: str) -> None:
         if need > self.budget:
@@ -122,13 +133,20 @@ class AvatarCache:
         self.metrics.cache_avatars.set(len(self._entries))
 
 
-def read_entry(avatar_id: str, path: Path, backend: str | None = None, threads: int = 0,
+def _file_id(path: Path) -> tuple[int, int, int]:
+    st = os.stat(path)
+    return st.st_ino, st.st_size, st.st_mtime_ns
+
+
+def read_entry(avatar_id: str, path: Path, backend: str | None = None, threads: int = 0, *, verify: bool = True,
                seconds: dict[str, float] | None = None) -> Loaded:
     """Read a bundle of the store and pack it for ``backend``: what a cache miss costs (``blendsplat bench load``
-    times it). ``seconds`` gets the stages ``read`` and ``renderer``."""
+    times it). ``verify``: the digest and finiteness pass (skipped for a bundle the store recorded as verified;
+    the layout, manifest and shapes are always checked). ``seconds`` gets the stages ``read`` and ``renderer``."""
+    file_id = _file_id(path)  # before reading: a file replaced during the read is noticed at the next load
     t0 = time.perf_counter()
     try:
-        avatar, manifest = read_bundle_and_manifest(path)
+        avatar, manifest = read_bundle_and_manifest(path, verify=verify)
     except BundleError as e:
         raise FailedPrecondition(f"avatar {avatar_id!r} has a broken bundle in the store: {e}",
                                  field="avatar_id") from None
@@ -138,4 +156,5 @@ def read_entry(avatar_id: str, path: Path, backend: str | None = None, threads: 
         seconds.update(read=t1 - t0, renderer=time.perf_counter() - t1)
     file_bytes = path.stat().st_size
     # The avatar as read (about the file's size) plus what the renderer holds for it, host or device.
-    return Loaded(avatar_id, avatar, renderer, manifest.get("digest", ""), file_bytes, file_bytes + renderer.nbytes)
+    return Loaded(avatar_id, avatar, renderer, manifest.get("digest", ""), file_bytes, file_bytes + renderer.nbytes,
+                  file_id)

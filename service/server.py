@@ -49,6 +49,7 @@ def make_demo_avatar(settings: Settings, engine: Engine) -> str:
     else:
         avatar = init_avatar(model, gaussians=n - n // 16, mouth=n // 16, opacity=0.95, albedo=demo_albedo(model))
     write_bundle(avatar, engine.store.path(DEMO_ID), precision="fp16")
+    engine.store.adopt(DEMO_ID)  # verified once, here: later loads trust the store's record
     return avatar.face_model
 
 

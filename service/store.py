@@ -3,16 +3,24 @@
 Uploads are staged in the same folder, fully validated (layout, manifest, digest, finite values) and then renamed
 into place atomically, so a reader never sees a partial or invalid bundle and a failed upload leaves nothing.
 Bundles are immutable: replacing one writes a new file (processes that mapped the old one keep their copy).
+
+Integrity is paid once, when a bundle enters the store: beside ``<id>.bundle`` the store records what it verified
+(``<id>.bundle.verified``: the file's size, the SHA-256 of its header, which holds the content digest, and that
+digest). Every replica sharing the folder sees the record; a load whose file still has that size and header
+trusts it and skips the full pass (:meth:`BundleStore.verified`). A file replaced behind the store's back (a
+different size or header) has no matching record and is fully verified when it is next loaded.
 """
 
 from __future__ import annotations
 
+import hashlib
+import json
 import os
 import re
 import tempfile
 from pathlib import Path
 
-from render_core.atomic import publish
+from render_core.atomic import atomic_path, publish
 from render_core.bundle import read_manifest, validate_bundle
 from render_core.errors import BundleError
 
@@ -20,6 +28,8 @@ from .errors import InvalidArgument, NotFound
 
 ID_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
 SUFFIX = ".bundle"
+RECORD = ".verified"  # <id>.bundle.verified: what the store verified (never ends in SUFFIX, so never an id)
+_MAX_HEADER = 100 << 20  # as the bundle reader's limit: a longer header is not a bundle
 
 
 def check_id(avatar_id: str, field: str = "avatar_id") -> str:
@@ -68,14 +78,49 @@ class BundleStore:
         return fd, Path(name)
 
     def commit(self, staged: Path, avatar_id: str) -> dict:
-        """Validate a staged upload and move it into place as ``avatar_id``; the staged file is gone after."""
+        """Validate a staged upload, move it into place as ``avatar_id`` and record it as verified; the staged file
+        is gone after."""
         try:
             target = self.path(avatar_id)
             try:
                 manifest = validate_bundle(staged)
             except BundleError as e:
                 raise InvalidArgument(f"not a valid avatar bundle: {e}", field="bundle") from None
+            identity = _identity(staged)
             publish(staged, target)
+            self._record(target, identity, manifest)
             return manifest
         finally:
             staged.unlink(missing_ok=True)
+
+    def adopt(self, avatar_id: str) -> dict:
+        """Fully validate a bundle written into the store by this process (the demo avatar) and record it."""
+        path = self.existing(avatar_id)
+        identity = _identity(path)
+        manifest = validate_bundle(path)
+        self._record(path, identity, manifest)
+        return manifest
+
+    def verified(self, path: Path) -> bool:
+        """Whether ``path`` is the file the store verified when it entered (same size and header as recorded):
+        a load may then skip the digest and finiteness pass. False for anything else, including no record."""
+        try:
+            record = json.loads(path.with_name(path.name + RECORD).read_text(encoding="utf-8"))
+            return record == {**_identity(path), "digest": record.get("digest")}
+        except (OSError, ValueError, TypeError):
+            return False
+
+    def _record(self, path: Path, identity: dict, manifest: dict) -> None:
+        with atomic_path(path.with_name(path.name + RECORD)) as tmp:
+            tmp.write_text(json.dumps({**identity, "digest": manifest.get("digest")}), encoding="utf-8")
+
+
+def _identity(path: Path) -> dict:
+    """A bundle file's size and the SHA-256 of its header (length prefix, tensor table and manifest with the
+    content digest): what tells one bundle file from another without reading its data."""
+    with open(path, "rb") as f:
+        size = os.fstat(f.fileno()).st_size
+        prefix = f.read(8)
+        n = int.from_bytes(prefix, "little") if len(prefix) == 8 else 0
+        header = prefix + f.read(min(n, _MAX_HEADER))
+    return {"size": size, "header_sha256": hashlib.sha256(header).hexdigest()}
