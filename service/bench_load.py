@@ -75,12 +75,13 @@ def load_once(path: Path, size: int, backend: str | None, threads: int) -> dict:
 
 
 def _load_in_fresh_process(path: Path, size: int, backend: str | None, threads: int) -> dict:
-    args = json.dumps({"path": str(path), "size": size, "backend": backend, "threads": threads})
+    out = path.with_name("figures.json")
+    args = json.dumps({"path": str(path), "size": size, "backend": backend, "threads": threads, "out": str(out)})
     proc = subprocess.run([sys.executable, "-m", "service.bench_load", args], capture_output=True, text=True,
                           check=False)
     if proc.returncode != 0:
         raise RuntimeError(f"the load process failed (exit {proc.returncode}): {proc.stderr.strip()[-2000:]}")
-    return json.loads(proc.stdout)
+    return json.loads(out.read_text())
 
 
 def bench_load(bundle: str | os.PathLike, *, size: int = 512, backend: str | None = None, threads: int = 0) -> dict:
@@ -109,6 +110,6 @@ def bench_load(bundle: str | os.PathLike, *, size: int = 512, backend: str | Non
     }
 
 
-if __name__ == "__main__":  # the fresh process of one load: JSON arguments in, JSON figures out
+if __name__ == "__main__":  # the fresh process of one load: JSON arguments in, its figures to the file "out"
     a = json.loads(sys.argv[1])
-    sys.stdout.write(json.dumps(load_once(Path(a["path"]), a["size"], a["backend"], a["threads"])) + "\n")
+    Path(a["out"]).write_text(json.dumps(load_once(Path(a["path"]), a["size"], a["backend"], a["threads"])))
