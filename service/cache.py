@@ -41,7 +41,7 @@ class Loaded:
     digest: str
     file_bytes: int
     memory_bytes: int
-    file_id: tuple[int, int, int]  # (inode, size, mtime ns) of the file that was read
+    file_id: tuple[int, int, int] = (0, 0, 0)  # (inode, size, mtime ns) of the file read; none for a built-in one
     pins: int = 0
     loaded_at: float = field(default_factory=time.time)
 

@@ -100,3 +100,20 @@ def test_an_upload_through_the_store_replaces_the_cached_avatar(store, bundles):
     second = asyncio.run(cache.load("a"))
     assert second is not first and second.digest != first.digest and store.verified(store.path("a"))
     assert asyncio.run(cache.load("a")) is second  # unchanged since: a cache hit
+
+
+def test_warm_up_without_any_avatar_renders_a_built_in_one(tmp_path):
+    """An empty store and no demo avatar: readiness still comes, from a tiny built-in avatar (no file)."""
+    from service.engine import Engine
+    from service.settings import Settings
+
+    async def scenario():
+        engine = Engine(Settings(data_dir=tmp_path, warmup_size=32))
+        await engine.start()
+        try:
+            await engine.warm_up(None)
+            return engine.ready
+        finally:
+            await engine.close()
+
+    assert asyncio.run(scenario())
