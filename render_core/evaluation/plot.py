@@ -35,6 +35,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..atomic import atomic_path
+from ..media.pixels import to_uint8
 
 if TYPE_CHECKING:  # matplotlib is optional: imported lazily by _matplotlib()
     from matplotlib.figure import Figure
@@ -207,10 +208,6 @@ def training_plots(log_jsonl_path: str | os.PathLike, out_png: str | os.PathLike
 
 
 # --------------------------------------------------------------------------------------------- contact sheet
-def _rgb8(img: np.ndarray) -> np.ndarray:
-    return (np.clip(np.asarray(img, dtype=np.float64), 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
-
-
 def caption(index: int, psnr: float) -> str:
     """A contact-sheet row's caption, e.g. "frame 12  PSNR 27.31 dB"."""
     return f"frame {index}  PSNR {psnr:.2f} dB"
@@ -246,7 +243,7 @@ def contact_sheet_figure(rows: Sequence[tuple[int, np.ndarray, np.ndarray, float
         text(SHEET_PAD, top + SHEET_CAPTION / 2, caption(index, value), "#ffd25a", 9)
         top += SHEET_CAPTION
         for c, img in enumerate((pred, gt)):
-            pixels = _rgb8(img)[..., :3].repeat(s, axis=0).repeat(s, axis=1)
+            pixels = to_uint8(img)[..., :3].repeat(s, axis=0).repeat(s, axis=1)
             fig.figimage(pixels, xo=SHEET_PAD + c * (ws + SHEET_PAD), yo=height - top - hs, origin="upper")
         top += hs + SHEET_PAD
     return fig
