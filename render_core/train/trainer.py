@@ -229,10 +229,6 @@ def _select(frames: Frame, j: int) -> Frame:
                  None if frames.eyelids is None else frames.eyelids[j:j + 1])
 
 
-def _select_cams(cams: Cameras, j: int) -> Cameras:
-    return Cameras(cams.K[j:j + 1], cams.R[j:j + 1], cams.t[j:j + 1], cams.width, cams.height)
-
-
 def _cancel_check(should_cancel: CancelCheck | None) -> Callable[[], bool]:
     if should_cancel is None:
         return lambda: False
@@ -472,7 +468,7 @@ class Trainer:
         t0 = clock()
         it = self.iteration + 1
         j = int(torch.randint(len(self.train_idx), (1,), generator=gen))
-        frame, cams = _select(self._frames, j), _select_cams(self._cams, j)
+        frame, cams = _select(self._frames, j), self._cams.index(j)
         index = int(self.train_idx[j])
         rgb_t, mask_t = self._targets(index)
         degree = active_sh_degree(cfg, it)
@@ -591,7 +587,7 @@ class Trainer:
         out = {"frames": [], "psnr": []}
         with torch.no_grad():
             for j in picks.tolist():
-                rgb, _, _ = forward(self._model, _select(self._frames, j), _select_cams(self._cams, j), None,
+                rgb, _, _ = forward(self._model, _select(self._frames, j), self._cams.index(j), None,
                                     rasterize=self.rasterize, threads=self.preset.threads)
                 want, _ = self._targets(int(self.train_idx[j]))
                 out["frames"].append(int(self.train_idx[j]))
