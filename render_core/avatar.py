@@ -15,6 +15,7 @@ import torch
 from torch import Tensor
 
 from .errors import OptionError, ShapeError
+from .packed import SparseDeltas
 
 RasterMode = Literal["classic", "antialiased"]
 RASTER_MODES: tuple[str, ...] = ("classic", "antialiased")
@@ -88,7 +89,8 @@ class Avatar:
 
     Shapes (N face Gaussians, K blendshapes, J joints, M mouth Gaussians, C = (sh_degree+1)^2):
       neutral           Gaussians with [N, ...] tensors (B0)
-      deltas            Gaussians with [K, N, ...] tensors (dB_k = B_k - B0, all five properties)
+      deltas            Gaussians with [K, N, ...] tensors (dB_k = B_k - B0, all five properties), or the same
+                        stored sparsely (:class:`~render_core.packed.SparseDeltas`, as schema-2 bundles load)
       lbs_weights       [N, J]      rows sum to 1
       joint_positions   [J, 3]      rest positions of the joints, world space (metres)
       pose_correctives  [9 (J-1), N, 3] or None  (FLAME posedirs layout: (R_j - I) of the non-root joints)
@@ -98,7 +100,7 @@ class Avatar:
     """
 
     neutral: Gaussians
-    deltas: Gaussians
+    deltas: Gaussians | SparseDeltas
     lbs_weights: Tensor
     joint_positions: Tensor
     joint_names: list[str]
@@ -134,7 +136,24 @@ class Avatar:
     @property
     def precision(self) -> str:
         """Storage of the blendshape data (deltas, pose correctives, eyelids): "fp16" or "fp32"."""
-        return "fp16" if self.deltas.means.dtype == torch.float16 else "fp32"
+        dtype = self.deltas.dtype if isinstance(self.deltas, SparseDeltas) else self.deltas.means.dtype
+        return "fp16" if dtype == torch.float16 else "fp32"
+
+    def dense_deltas(self) -> Gaussians:
+        """The deltas as dense [K, N, ...] Gaussians (built from sparse deltas: K N (11 + 3C) values)."""
+        return self.deltas.to_dense() if isinstance(self.deltas, SparseDeltas) else self.deltas
+
+    def sparse_deltas(self, dtype: torch.dtype | None = None) -> SparseDeltas:
+        """The deltas as stored (Gaussian, blendshape) pairs in ``dtype`` (default theirs): no copy when they
+        already are."""
+        if isinstance(self.deltas, SparseDeltas):
+            return self.deltas if dtype in (None, self.deltas.dtype) else self.deltas.to(dtype=dtype)
+        return SparseDeltas.from_dense(self.deltas, dtype)
+
+    def _map_deltas(self, dtype: torch.dtype | None, device: torch.device | str | None = None):
+        if isinstance(self.deltas, SparseDeltas):
+            return self.deltas.to(device, dtype)
+        return self.deltas.map(lambda t: t.to(device=device, dtype=dtype or t.dtype))
 
     def with_precision(self, precision: str) -> Avatar:
         """A copy whose blendshape data (deltas, pose correctives, eyelid offsets: the bulk of an avatar, read
@@ -149,7 +168,7 @@ class Avatar:
 
         return replace(
             self.to(torch.float32),
-            deltas=self.deltas.map(cast),
+            deltas=self._map_deltas(store),
             pose_correctives=cast(self.pose_correctives),
             eyelid_offsets=cast(self.eyelid_offsets),
         )
@@ -168,7 +187,7 @@ class Avatar:
         return replace(
             self,
             neutral=self.neutral.map(cast),
-            deltas=self.deltas.map(cast),
+            deltas=self._map_deltas(dtype, device),
             lbs_weights=cast(self.lbs_weights),
             joint_positions=cast(self.joint_positions),
             mouth=self.mouth.map(cast),
@@ -181,15 +200,21 @@ class Avatar:
         """Raise ShapeError (or ValueError for metadata) naming the first inconsistency."""
         n, k, j = self.num_gaussians, self.num_expressions, self.num_joints
         c = sh_coeff_count(self.sh_degree)
-        if self.deltas.means.dim() != 3 or self.deltas.means.shape[0] != k:
-            raise ShapeError(f"{k} names but {list(self.deltas.means.shape[:1])} blendshapes in deltas.means",
-                             field="expression_names")
         self.neutral.check("neutral")
         if self.neutral.sh.shape[-2] != c:
             raise ShapeError(f"sh_degree {self.sh_degree} needs {c} coefficients", field="neutral.sh")
-        self.deltas.check("deltas", lead=(k,))
-        if self.deltas.count != n or self.deltas.sh.shape[-2] != c:
-            raise ShapeError(f"expected [K={k}, N={n}, ...] deltas", field="deltas")
+        if isinstance(self.deltas, SparseDeltas):
+            if self.deltas.num_expressions != k:
+                raise ShapeError(f"{k} names but {self.deltas.num_expressions} blendshapes in deltas",
+                                 field="expression_names")
+            self.deltas.check(n, k, c)
+        else:
+            if self.deltas.means.dim() != 3 or self.deltas.means.shape[0] != k:
+                raise ShapeError(f"{k} names but {list(self.deltas.means.shape[:1])} blendshapes in deltas.means",
+                                 field="expression_names")
+            self.deltas.check("deltas", lead=(k,))
+            if self.deltas.count != n or self.deltas.sh.shape[-2] != c:
+                raise ShapeError(f"expected [K={k}, N={n}, ...] deltas", field="deltas")
         self.mouth.check("mouth")
         if self.mouth.sh.shape[-2] != c:
             raise ShapeError(f"sh_degree {self.sh_degree} needs {c} coefficients", field="mouth.sh")

@@ -8,16 +8,27 @@ The header maps each tensor name to ``{"dtype", "shape", "data_offsets": [begin,
 the data region, little-endian, C order) and holds
 ``__metadata__ = {"blendsplat.manifest": <manifest JSON>}``.
 
-Tensors (N face Gaussians, K blendshapes, J joints, M mouth Gaussians, C = (sh_degree+1)^2)::
+Schema 2 (what :func:`write_bundle` writes) stores the packed layout of :mod:`render_core.packed`, which the
+native renderer reads as it is, so a load is a memory map: N face Gaussians, K blendshapes, J joints, M mouth
+Gaussians, C = (sh_degree+1)^2, R = 16 + ceil16(3C), Pg and Pc stored geometry and colour pairs::
+
+    gaussians [N + M, R] F32                       face then mouth Gaussian rows (packed.py)
+    deltas.geometry.row_ptr [N + 1] I32            deltas.color.row_ptr [N + 1] I32
+    deltas.geometry.col [Pg] U16                   deltas.color.col [Pc] U16
+    deltas.geometry.values [Pg * 11 + 5]           deltas.color.values [Pc * 3C + ceil16(3C) - 3C]
+    mouth_group [M] I64   lbs_weights [N, J] F32   joint_positions [J, 3] F32
+    pose_correctives [N, 3, ceil16(9 (J-1))]       eyelid_offsets [N, 2, 3] F32   (both optional)
+
+The pair values and pose correctives are all F16 or all F32 (manifest ``precision``; default fp16). Pairs are
+sorted by Gaussian, then blendshape, with no duplicates. Schema 1 stored every pair densely::
 
     neutral.means [N, 3]  neutral.quats [N, 4] (wxyz)  neutral.log_scales [N, 3]  neutral.opacity_logits [N]
     neutral.sh [N, C, 3]                 deltas.<same five> [K, N, ...]       mouth.<same five> [M, ...]
     mouth_group [M] I64                  lbs_weights [N, J] F32               joint_positions [J, 3] F32
     pose_correctives [9 (J-1), N, 3]     eyelid_offsets [2, N, 3]             (both optional)
 
-The blendshape data - delta, corrective and eyelid tensors - is all F32 or all F16 (manifest ``precision``); the
-neutral and mouth Gaussians are always F32. fp16 tensors stay fp16 in the loaded :class:`Avatar` and compute
-code casts.
+with the delta, corrective and eyelid tensors in the bundle's precision; it still loads (as dense deltas), and
+``blendsplat bundle convert`` rewrites it as schema 2.
 
 The manifest is a JSON object: ``format`` ("blendsplat-avatar"), ``schema_version``, ``face_model``,
 ``expression_names`` (in order), ``joint_names``, ``joint_parents``, ``mouth_joint_names`` (upper, lower),
@@ -33,12 +44,14 @@ detects tensors whose offsets were swapped. Any edit of the manifest is detected
 
 Schema versions: :data:`UPGRADERS` maps a version v to a function turning a v manifest into a v+1 manifest;
 on load :func:`upgrade_manifest` applies the chain up to :data:`CURRENT_SCHEMA_VERSION`. The digest always
-refers to the manifest as stored (before upgrading).
+refers to the manifest as stored (before upgrading), and the tensors are read in the layout of the stored version
+(the manifest keys of schemas 1 and 2 are the same; the ``tensors`` table describes the file as stored).
 """
 
 from __future__ import annotations
 
 import copy
+import errno
 import hashlib
 import importlib.metadata
 import json
@@ -57,17 +70,21 @@ import safetensors.numpy
 import torch
 from torch import Tensor
 
+from . import packed
 from .atomic import atomic_path
 from .avatar import RASTER_MODES, Avatar, Gaussians
+from .camera import calibration_problem
 from .errors import BlendsplatError, BundleError
 
-CURRENT_SCHEMA_VERSION = 1
+CURRENT_SCHEMA_VERSION = 2
 FORMAT = "blendsplat-avatar"
 MANIFEST_KEY = "blendsplat.manifest"
 PRECISIONS: tuple[str, ...] = ("fp32", "fp16")
-UPGRADERS: dict[int, Callable[[dict[str, Any]], dict[str, Any]]] = {}
-"""Schema upgraders: ``UPGRADERS[v]`` turns a version-v manifest into a version-(v+1) one (empty while v1 is
-the only version). :func:`upgrade_manifest` sets ``schema_version`` after each step."""
+UPGRADERS: dict[int, Callable[[dict[str, Any]], dict[str, Any]]] = {
+    1: dict,  # 1 -> 2 changed the tensor layout only (read by the stored version), not the manifest's keys
+}
+"""Schema upgraders: ``UPGRADERS[v]`` turns a version-v manifest into a version-(v+1) one.
+:func:`upgrade_manifest` sets ``schema_version`` after each step."""
 
 _DIGEST_DOMAIN = b"blendsplat-avatar-digest-v1\n"
 _MAX_HEADER_BYTES = 100 * 1024 * 1024
@@ -79,12 +96,13 @@ _GAUSSIAN_TAILS: dict[str, tuple[str, ...]] = {
 }
 _GROUP_LEADS = {"neutral": ("N",), "deltas": ("K", "N"), "mouth": ("M",)}
 _OPTIONAL = ("pose_correctives", "eyelid_offsets")
-_DTYPES: dict[str, torch.dtype] = {"F32": torch.float32, "F16": torch.float16, "I64": torch.int64}
+_DTYPES: dict[str, torch.dtype] = {"F32": torch.float32, "F16": torch.float16, "I64": torch.int64,
+                                   "I32": torch.int32, "U16": torch.uint16}
 _DTYPE_NAMES = {v: k for k, v in _DTYPES.items()}
-_ITEMSIZE = {"F32": 4, "F16": 2, "I64": 8}
+_ITEMSIZE = {"F32": 4, "F16": 2, "I64": 8, "I32": 4, "U16": 2}
 _PRECISION_DTYPE = {"fp32": "F32", "fp16": "F16"}
-# Symbolic shape of every tensor a bundle may hold (N, K, J, M, C and literals).
-_SHAPES: dict[str, tuple[str, ...]] = {
+# Symbolic shape of every tensor a schema-1 bundle may hold (N, K, J, M, C and literals).
+_SHAPES_V1: dict[str, tuple[str, ...]] = {
     **{f"{group}.{key}": (*lead, *_GAUSSIAN_TAILS[key]) for group, lead in _GROUP_LEADS.items()
        for key in _GAUSSIAN_KEYS},
     "mouth_group": ("M",),
@@ -99,14 +117,16 @@ _SHAPES: dict[str, tuple[str, ...]] = {
 
 
 def write_bundle(
-    avatar: Avatar, path: str | os.PathLike, precision: Literal["fp32", "fp16"] = "fp32"
+    avatar: Avatar, path: str | os.PathLike, precision: Literal["fp32", "fp16"] = "fp16", *,
+    schema_version: int = CURRENT_SCHEMA_VERSION,
 ) -> dict[str, Any]:
     """Write ``avatar`` to ``path`` as one bundle file and return its manifest.
 
-    ``precision="fp16"`` stores the delta, corrective and eyelid tensors in float16 (the neutral and mouth
-    Gaussians stay float32);
-    ``lbs_weights`` and ``joint_positions`` stay float32 and ``mouth_group`` int64. ``provenance`` gains
-    ``created_at`` (ISO 8601, UTC) and ``blendsplat_version`` where absent.
+    ``precision`` is the storage of the blendshape data (delta pairs, pose correctives; schema 1 also eyelid
+    offsets): float16 by default, or float32; the neutral and mouth Gaussians, ``lbs_weights`` and
+    ``joint_positions`` stay float32. Only the (Gaussian, blendshape) pairs with a non-zero value (after the cast)
+    are stored. ``schema_version`` 1 writes the old dense layout (for tools that read only that; loading it costs
+    a repack). ``provenance`` gains ``created_at`` (ISO 8601, UTC) and ``blendsplat_version`` where absent.
 
     The write is atomic: the file is written to a temporary name in the same folder, fsynced and renamed over
     ``path``, so a crash leaves either the old file or the new one. An invalid avatar (bad shapes, non-finite
@@ -119,11 +139,14 @@ def write_bundle(
     """
     if precision not in PRECISIONS:
         raise BundleError(f"must be one of {PRECISIONS}, got {precision!r}", field="precision")
+    if schema_version not in (1, 2):
+        raise BundleError(f"writes schema 1 or 2, got {schema_version!r}", field="schema_version")
     _validate_avatar(avatar)
-    tensors = _tensors_for_write(avatar, precision)
-    manifest = _build_manifest(avatar, precision, tensors)
+    tensors = (_tensors_v1 if schema_version == 1 else _tensors_v2)(avatar, precision)
+    manifest = _build_manifest(avatar, precision, tensors, schema_version)
     _check_manifest(manifest)
-    _check_tensor_table(manifest, {n: (_DTYPE_NAMES[t.dtype], tuple(t.shape)) for n, t in tensors.items()})
+    _check_tensor_table(manifest, {n: (_DTYPE_NAMES[t.dtype], tuple(t.shape)) for n, t in tensors.items()},
+                        schema_version)
     arrays = {name: t.numpy() for name, t in tensors.items()}
     manifest["digest"] = _content_digest(manifest, (_as_bytes(arrays[name]) for name in sorted(arrays)))
     with atomic_path(path) as tmp:
@@ -131,11 +154,54 @@ def write_bundle(
     return manifest
 
 
-def _tensors_for_write(avatar: Avatar, precision: str) -> dict[str, Tensor]:
-    """The bundle's tensors, contiguous on the CPU in their stored dtypes; refuses non-finite values."""
+def _tensors_v2(avatar: Avatar, precision: str) -> dict[str, Tensor]:
+    """The schema-2 tensors (the packed layout), contiguous on the CPU; refuses non-finite values."""
+    store = _DTYPES[_PRECISION_DTYPE[precision]]
+    for group in ("neutral", "mouth"):
+        for key, t in getattr(avatar, group).tensors().items():
+            _cast_finite(f"{group}.{key}", t, torch.float32)
+    out = {"gaussians": packed.pack_rows(avatar.neutral, avatar.mouth).contiguous()}
+    dense = avatar.deltas if isinstance(avatar.deltas, Gaussians) else None
+    sources = dense.tensors() if dense is not None else avatar.deltas.tensors()
+    for key, t in sources.items():
+        if t.is_floating_point() and _count_nonfinite(t.detach()):
+            raise BundleError(f"{_count_nonfinite(t.detach())} non-finite values (NaN/Inf); refusing to write the "
+                              "bundle", field=f"deltas.{key}")
+    deltas = avatar.sparse_deltas(store)
+    for key, t in deltas.tensors().items():
+        bad = _count_nonfinite(t) if t.is_floating_point() else 0
+        if bad:  # finite before the cast: values beyond the storage's range; name the dense tensor where known
+            field = next((f"deltas.{k}" for k, d in (dense.tensors().items() if dense is not None else ())
+                          if _count_nonfinite(d.detach().to(store))), f"deltas.{key}")
+            raise BundleError(f"{bad} values overflow {store} (|x| > {torch.finfo(store).max:g}); write with "
+                              "precision='fp32'", field=field)
+        out[f"deltas.{key}"] = t.contiguous()
+    if avatar.pose_correctives is not None:
+        pc = _cast_finite("pose_correctives", avatar.pose_correctives, store)
+        out["pose_correctives"] = packed.pack_correctives(pc, store)
+    if avatar.eyelid_offsets is not None:
+        out["eyelid_offsets"] = packed.pack_eyelids(_cast_finite("eyelid_offsets", avatar.eyelid_offsets,
+                                                                  torch.float32))
+    _add_skinning(avatar, out)
+    return out
+
+
+def _add_skinning(avatar: Avatar, out: dict[str, Tensor]) -> None:
+    """LBS weights and joint positions (float32) and the mouth groups (int64), as both schemas store them."""
+    out["lbs_weights"] = _cast_finite("lbs_weights", avatar.lbs_weights, torch.float32)
+    out["joint_positions"] = _cast_finite("joint_positions", avatar.joint_positions, torch.float32)
+    if avatar.mouth_group.is_floating_point() or avatar.mouth_group.dtype == torch.bool:
+        raise BundleError(f"expected an integer tensor, got {avatar.mouth_group.dtype}", field="mouth_group")
+    out["mouth_group"] = avatar.mouth_group.detach().to("cpu", torch.int64).contiguous()
+
+
+def _tensors_v1(avatar: Avatar, precision: str) -> dict[str, Tensor]:
+    """The schema-1 tensors (dense deltas), contiguous on the CPU in their stored dtypes; refuses non-finite
+    values."""
     source: dict[str, Tensor] = {}
     for group in _GROUP_LEADS:
-        for key, t in getattr(avatar, group).tensors().items():
+        g = avatar.dense_deltas() if group == "deltas" else getattr(avatar, group)
+        for key, t in g.tensors().items():
             source[f"{group}.{key}"] = t
     for name in _OPTIONAL:
         if getattr(avatar, name) is not None:
@@ -145,11 +211,7 @@ def _tensors_for_write(avatar: Avatar, precision: str) -> dict[str, Tensor]:
         if not t.is_floating_point():
             raise BundleError(f"expected a floating-point tensor, got {t.dtype}", field=name)
         out[name] = _cast_finite(name, t, _DTYPES[_stored_dtype(name, precision)])
-    out["lbs_weights"] = _cast_finite("lbs_weights", avatar.lbs_weights, torch.float32)
-    out["joint_positions"] = _cast_finite("joint_positions", avatar.joint_positions, torch.float32)
-    if avatar.mouth_group.is_floating_point() or avatar.mouth_group.dtype == torch.bool:
-        raise BundleError(f"expected an integer tensor, got {avatar.mouth_group.dtype}", field="mouth_group")
-    out["mouth_group"] = avatar.mouth_group.detach().to("cpu", torch.int64).contiguous()
+    _add_skinning(avatar, out)
     return out
 
 
@@ -167,13 +229,13 @@ def _cast_finite(name: str, t: Tensor, dtype: torch.dtype) -> Tensor:
     return out
 
 
-def _build_manifest(avatar: Avatar, precision: str, tensors: Mapping[str, Tensor]) -> dict[str, Any]:
+def _build_manifest(avatar: Avatar, precision: str, tensors: Mapping[str, Tensor], version: int) -> dict[str, Any]:
     provenance = dict(avatar.provenance)
     provenance.setdefault("created_at", datetime.now(UTC).isoformat(timespec="seconds"))
     provenance.setdefault("blendsplat_version", _package_version())
     manifest: dict[str, Any] = {
         "format": FORMAT,
-        "schema_version": CURRENT_SCHEMA_VERSION,
+        "schema_version": version,
         "face_model": avatar.face_model,
         "expression_names": list(avatar.expression_names),
         "joint_names": list(avatar.joint_names),
@@ -260,6 +322,12 @@ def read_manifest(path: str | os.PathLike) -> dict:
     """
     with _open(path) as f:
         return _parse(f)[1]
+
+
+def stored_schema_version(path: str | os.PathLike) -> int:
+    """The schema version the bundle at ``path`` was written with (before upgrading; reads only the header)."""
+    with _open(path) as f:
+        return _parse(f)[0].stored_manifest["schema_version"]
 
 
 def validate_bundle(path: str | os.PathLike) -> dict:
@@ -357,14 +425,40 @@ def _parse(f) -> tuple[_Layout, dict[str, Any]]:
     layout = _read_layout(f)
     manifest = upgrade_manifest(layout.stored_manifest)
     _check_manifest(manifest)
-    _check_tensor_table(manifest, {name: (e.dtype, e.shape) for name, e in layout.entries.items()})
+    _check_tensor_table(manifest, {name: (e.dtype, e.shape) for name, e in layout.entries.items()},
+                        layout.stored_manifest["schema_version"])
     return layout, manifest
+
+
+class BundleMappingError(BundleError):
+    """The bundle's file could not be memory-mapped: a limit of this machine or process (``errno``: ENOMEM when
+    there is not enough memory or address space for a private map of the whole file), not a fault of its content.
+    The service answers RESOURCE_EXHAUSTED for it."""
+
+    def __init__(self, message: str, *, os_errno: int, field: str | None = "path"):
+        self.errno = os_errno
+        super().__init__(message, field=field)
+
+
+def _map(f, size: int) -> mmap.mmap:
+    """A private (copy-on-write) map of the whole open file; an OS refusal as a :class:`BundleMappingError`
+    naming the cause (never a bare ``[Errno 12]``)."""
+    try:
+        return mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_COPY)
+    except (OSError, ValueError, OverflowError) as e:
+        code = getattr(e, "errno", None) or errno.EINVAL
+        name = errno.errorcode.get(code, str(code))
+        why = getattr(e, "strerror", None) or str(e)
+        hint = (": not enough memory or address space for a private map of the whole file (the process's memory "
+                "limit, or the system's overcommit policy)" if code == errno.ENOMEM else "")
+        raise BundleMappingError(f"cannot memory-map the {size}-byte file: {name} ({why}){hint}",
+                                 os_errno=code) from None
 
 
 def _load(path: str | os.PathLike, *, verify: bool, device: torch.device | str | None) -> tuple[Avatar, dict]:
     with _open(path) as f:
         layout, manifest = _parse(f)
-        mapped = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_COPY)
+        mapped = _map(f, layout.file_size)
     if len(mapped) != layout.file_size:
         raise BundleError(f"the file changed while loading ({layout.file_size} -> {len(mapped)} bytes)",
                           field="path")
@@ -376,7 +470,8 @@ def _load(path: str | os.PathLike, *, verify: bool, device: torch.device | str |
             bad = _count_nonfinite(t) if t.is_floating_point() else 0
             if bad:
                 raise BundleError(f"{bad} of {t.numel()} values are non-finite (NaN/Inf)", field=name)
-    avatar = _avatar_from(manifest, tensors)
+    version = layout.stored_manifest["schema_version"]
+    avatar = (_avatar_from_v1 if version == 1 else _avatar_from_v2)(manifest, tensors)
     _validate_avatar(avatar)
     if device is not None:
         avatar = avatar.to(device=device)
@@ -515,7 +610,22 @@ def _verify_digest(layout: _Layout, mapped: mmap.mmap) -> None:
         raise BundleError("content digest mismatch: the file was modified or corrupted", field="digest")
 
 
-def _avatar_from(manifest: dict[str, Any], tensors: dict[str, Tensor]) -> Avatar:
+def _avatar_fields(manifest: dict[str, Any]) -> dict[str, Any]:
+    """The avatar's non-tensor fields, from the manifest."""
+    return dict(
+        joint_names=list(manifest["joint_names"]),
+        joint_parents=list(manifest["joint_parents"]),
+        expression_names=list(manifest["expression_names"]),
+        mouth_joint_names=tuple(manifest["mouth_joint_names"]),
+        sh_degree=manifest["sh_degree"],
+        face_model=manifest["face_model"],
+        raster_mode=manifest["raster_mode"],
+        default_camera=copy.deepcopy(manifest["default_camera"]),
+        provenance=copy.deepcopy(manifest["provenance"]),
+    )
+
+
+def _avatar_from_v1(manifest: dict[str, Any], tensors: dict[str, Tensor]) -> Avatar:
     def group(name: str) -> Gaussians:
         return Gaussians(**{key: tensors[f"{name}.{key}"] for key in _GAUSSIAN_KEYS})
 
@@ -524,19 +634,36 @@ def _avatar_from(manifest: dict[str, Any], tensors: dict[str, Tensor]) -> Avatar
         deltas=group("deltas"),
         lbs_weights=tensors["lbs_weights"],
         joint_positions=tensors["joint_positions"],
-        joint_names=list(manifest["joint_names"]),
-        joint_parents=list(manifest["joint_parents"]),
-        expression_names=list(manifest["expression_names"]),
         mouth=group("mouth"),
         mouth_group=tensors["mouth_group"],
-        mouth_joint_names=tuple(manifest["mouth_joint_names"]),
         pose_correctives=tensors.get("pose_correctives"),
         eyelid_offsets=tensors.get("eyelid_offsets"),
-        sh_degree=manifest["sh_degree"],
-        face_model=manifest["face_model"],
-        raster_mode=manifest["raster_mode"],
-        default_camera=copy.deepcopy(manifest["default_camera"]),
-        provenance=copy.deepcopy(manifest["provenance"]),
+        **_avatar_fields(manifest),
+    )
+
+
+def _avatar_from_v2(manifest: dict[str, Any], tensors: dict[str, Tensor]) -> Avatar:
+    """Views of the packed tensors (no copies): the native renderer finds its layout behind them."""
+    counts, c = manifest["counts"], (manifest["sh_degree"] + 1) ** 2
+    n, k, j = counts["gaussians"], counts["blendshapes"], counts["joints"]
+    neutral, mouth = packed.unpack_rows(tensors["gaussians"], n, c)
+
+    def pairs(part: str, length: int) -> packed.Pairs:
+        return packed.Pairs(tensors[f"deltas.{part}.row_ptr"], tensors[f"deltas.{part}.col"],
+                            tensors[f"deltas.{part}.values"], length)
+
+    deltas = packed.SparseDeltas(pairs("geometry", packed.GEOMETRY_LENGTH), pairs("color", 3 * c), k, n, c)
+    pc, eyelids = tensors.get("pose_correctives"), tensors.get("eyelid_offsets")
+    return Avatar(
+        neutral=neutral,
+        deltas=deltas,
+        lbs_weights=tensors["lbs_weights"],
+        joint_positions=tensors["joint_positions"],
+        mouth=mouth,
+        mouth_group=tensors["mouth_group"],
+        pose_correctives=packed.unpack_correctives(pc, j) if pc is not None else None,
+        eyelid_offsets=packed.unpack_eyelids(eyelids) if eyelids is not None else None,
+        **_avatar_fields(manifest),
     )
 
 
@@ -637,12 +764,9 @@ def _check_camera(cam: Any) -> None:
             raise BundleError(f"must be a positive integer, got {cam[key]!r}", field=f"{field}.{key}")
     mats = {key: _float_array(cam[key], shape, f"{field}.{key}")
             for key, shape in (("K", (3, 3)), ("R", (3, 3)), ("t", (3,)))}
-    K, R = mats["K"], mats["R"]
-    if K[0, 0] <= 0 or K[1, 1] <= 0:
-        raise BundleError(f"focal lengths must be positive, got fx={K[0, 0]}, fy={K[1, 1]}",
-                          field=f"{field}.K")
-    if not np.allclose(R @ R.T, np.eye(3), atol=1e-3) or np.linalg.det(R) <= 0:
-        raise BundleError("must be a rotation matrix (orthonormal, det +1)", field=f"{field}.R")
+    problem = calibration_problem(*(torch.from_numpy(mats[key]) for key in ("K", "R", "t")))
+    if problem is not None:
+        raise BundleError(problem[1], field=f"{field}.{problem[0]}")
 
 
 def _float_array(value: Any, shape: tuple[int, ...], field: str) -> np.ndarray:
@@ -665,7 +789,7 @@ def _resolve(symbols: tuple[str, ...], counts: dict[str, int], sh_degree: int) -
 
 
 def _stored_dtype(name: str, precision: str) -> str:
-    """Blendshape data (deltas, correctives, eyelids) in the bundle's precision; everything else fixed."""
+    """Schema 1: blendshape data (deltas, correctives, eyelids) in the bundle's precision; everything else fixed."""
     if name == "mouth_group":
         return "I64"
     if name.startswith("deltas.") or name in _OPTIONAL:
@@ -673,30 +797,58 @@ def _stored_dtype(name: str, precision: str) -> str:
     return "F32"
 
 
-def _check_tensor_table(m: dict[str, Any], table: dict[str, tuple[str, tuple[int, ...]]]) -> None:
-    """Check the tensors (name -> (dtype, shape)) against the known set, the precision, the counts and the
-    manifest's ``tensors`` table."""
+def _expected_v1(m: dict[str, Any], table: Mapping[str, tuple[str, tuple[int, ...]]]):
     counts, sh_degree, precision = m["counts"], m["sh_degree"], m["precision"]
-    expected = _SHAPES
+    return {name: (_stored_dtype(name, precision), _resolve(symbols, counts, sh_degree), "[" + ", ".join(symbols)
+                   + "]") for name, symbols in _SHAPES_V1.items()}
+
+
+def _expected_v2(m: dict[str, Any], table: Mapping[str, tuple[str, tuple[int, ...]]]):
+    counts, c = m["counts"], (m["sh_degree"] + 1) ** 2
+    n, j, mouth = counts["gaussians"], counts["joints"], counts["mouth"]
+    value = _PRECISION_DTYPE[m["precision"]]
+    out = {
+        "gaussians": ("F32", (n + mouth, packed.row_width(c)), "[N + M, 16 + ceil16(3C)]"),
+        "mouth_group": ("I64", (mouth,), "[M]"),
+        "lbs_weights": ("F32", (n, j), "[N, J]"),
+        "joint_positions": ("F32", (j, 3), "[J, 3]"),
+        "pose_correctives": (value, (n, 3, packed.corrective_width(j)), "[N, 3, ceil16(9(J-1))]"),
+        "eyelid_offsets": ("F32", (n, 2, 3), "[N, 2, 3]"),
+    }
+    for part, length in (("geometry", packed.GEOMETRY_LENGTH), ("color", 3 * c)):
+        col = table.get(f"deltas.{part}.col", ("U16", ()))[1]
+        pairs = col[0] if len(col) == 1 else 0  # the pair count is the col tensor's (its own shape is checked)
+        pad = packed.ceil16(length) - length
+        out[f"deltas.{part}.row_ptr"] = ("I32", (n + 1,), "[N + 1]")
+        out[f"deltas.{part}.col"] = ("U16", (pairs,), "[P]")
+        out[f"deltas.{part}.values"] = (value, (pairs * length + pad,),
+                                        f"[P * {length} + {pad}] with P = {pairs} pairs (the col tensor)")
+    return out
+
+
+_SCHEMAS = {1: _expected_v1, 2: _expected_v2}
+
+
+def _check_tensor_table(m: dict[str, Any], table: dict[str, tuple[str, tuple[int, ...]]], version: int) -> None:
+    """Check the tensors (name -> (dtype, shape)) against those of the schema ``version``, the precision, the
+    counts and the manifest's ``tensors`` table."""
+    precision = m["precision"]
+    expected = _SCHEMAS[version](m, table)
     for name in sorted(table):
         if name not in expected:
-            raise BundleError(f"unexpected tensor; a bundle holds {', '.join(expected)}", field=name)
+            raise BundleError(f"unexpected tensor; a schema-{version} bundle holds {', '.join(expected)}",
+                              field=name)
     for name in expected:
         if name not in table and name not in _OPTIONAL:
             raise BundleError("missing tensor", field=name)
-    for name in (n for n in expected if n in table):  # a fixed order: neutral first, then deltas, ...
+    for name in (n for n in expected if n in table):  # a fixed order: the Gaussians first, then deltas, ...
         dtype, shape = table[name]
-        want_dtype = _stored_dtype(name, precision)
+        want_dtype, want, symbols = expected[name]
         if dtype != want_dtype:
-            raise BundleError(
-                f"dtype {dtype} does not match precision {precision!r}, which stores {want_dtype}", field=name
-            )
-        symbols = expected[name]
-        want = _resolve(symbols, counts, sh_degree)
+            raise BundleError(f"dtype {dtype} does not match precision {precision!r} and schema {version}, which "
+                              f"store {want_dtype}", field=name)
         if tuple(shape) != want:
-            raise BundleError(
-                f"expected shape [{', '.join(symbols)}] = {list(want)}, got {list(shape)}", field=name
-            )
+            raise BundleError(f"expected shape {symbols} = {list(want)}, got {list(shape)}", field=name)
     listed = m.get("tensors")
     if not isinstance(listed, dict):
         raise BundleError(f"must be an object {{name: {{dtype, shape}}}}, got {listed!r:.100}",

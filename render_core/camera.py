@@ -97,7 +97,30 @@ class Cameras:
             raise FrameError(
                 f"expected {{width, height, K: 3x3, R: 3x3, t: 3}} ({type(e).__name__}: {e})", field="camera"
             ) from None
+        if w < 1 or h < 1:
+            raise FrameError(f"the image size must be positive, got {w}x{h}", field="camera.width")
+        problem = calibration_problem(K[0].double(), R[0].double(), t[0].double())
+        if problem is not None:
+            raise FrameError(problem[1], field=f"camera.{problem[0]}")
         return Cameras(K, R, t, w, h)
+
+
+def calibration_problem(K: Tensor, R: Tensor, t: Tensor) -> tuple[str, str] | None:
+    """The first problem of one pinhole calibration, as (``K`` | ``R`` | ``t``, message), or None when it is
+    usable: every value finite; K = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0 (no skew: the
+    rasterizers have none); R a rotation (orthonormal within 1e-3, determinant +1). What every camera a user gives
+    must pass (driving files, wire messages, a bundle's default camera)."""
+    for key, value in (("K", K), ("R", R), ("t", t)):
+        if not bool(torch.isfinite(value).all()):
+            return key, "values must be finite (no NaN or Infinity)"
+    if float(K[0, 0]) <= 0 or float(K[1, 1]) <= 0:
+        return "K", f"focal lengths must be positive, got fx={float(K[0, 0]):g}, fy={float(K[1, 1]):g}"
+    if float(K[0, 1]) != 0 or float(K[1, 0]) != 0 or [float(v) for v in K[2]] != [0.0, 0.0, 1.0]:
+        return "K", "expected [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]"
+    eye = torch.eye(3, dtype=R.dtype)
+    if float((R @ R.T - eye).abs().max()) > 1e-3 or float(torch.linalg.det(R)) <= 0:
+        return "R", "must be a rotation matrix (orthonormal, determinant +1)"
+    return None
 
 
 def look_at(eye: Tensor, target: Tensor, up: Tensor | None = None) -> tuple[Tensor, Tensor]:

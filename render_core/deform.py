@@ -25,6 +25,7 @@ from torch import Tensor
 
 from .avatar import Avatar, Gaussians
 from .errors import FrameError, ShapeError
+from .packed import SparseDeltas
 from .rotation import axis_angle_to_matrix, matrix_to_quat, orthogonalize, quat_multiply, rot6d_to_matrix
 from .sh import eval_sh
 from .sh import rotate_sh as _rotate_sh
@@ -349,8 +350,9 @@ def blend(avatar: Avatar, expression: Tensor) -> Gaussians:
     """Eq. 1: B(psi) = B0 + sum_k psi_k dB_k for all five properties (raw: quaternions unnormalised,
     log-scales, opacity logits).
 
-    One matrix-matrix product per property, ``expression [B, K] @ deltas [K, N*D]``, added to the neutral.
-    Storage (possibly fp16) is cast to float32, or to float64 when ``expression`` is float64. Differentiable
+    One matrix-matrix product per property, ``expression [B, K] @ deltas [K, N*D]``, added to the neutral; for
+    sparse deltas (:class:`~render_core.packed.SparseDeltas`) only the stored pairs are multiplied. Storage
+    (possibly fp16) is cast to float32, or to float64 when ``expression`` is float64. Differentiable
     with respect to ``expression`` and the avatar's tensors.
 
     Args:
@@ -373,6 +375,16 @@ def blend(avatar: Avatar, expression: Tensor) -> Gaussians:
         return base.to(dtype).unsqueeze(0) + flat.reshape(b, n, *tail)
 
     neutral, deltas = avatar.neutral, avatar.deltas
+    if isinstance(deltas, SparseDeltas):
+        geometry, color = deltas.blend(expr, dtype)
+        g = geometry.split([3, 4, 3, 1], -1)
+        return Gaussians(
+            means=neutral.means.to(dtype) + g[0],
+            quats=neutral.quats.to(dtype) + g[1],
+            log_scales=neutral.log_scales.to(dtype) + g[2],
+            opacity_logits=neutral.opacity_logits.to(dtype) + g[3][..., 0],
+            sh=neutral.sh.to(dtype) + color.reshape(b, n, *neutral.sh.shape[1:]),
+        )
     return Gaussians(
         means=one(neutral.means, deltas.means),
         quats=one(neutral.quats, deltas.quats),

@@ -6,9 +6,9 @@ avatar to the GPU) and renders batches of frames, reporting per-stage timings:
 
 - ``native``: the fused C++ pipeline (blend, pose correctives, eyelids, LBS, SH colour, projection, binning,
   compositing) for B frames in one call;
-- ``cuda``: :class:`DeviceAvatar` on the GPU (blend as one matrix product over the fp16/bf16/fp32 blendshape
-  matrix, :func:`render_core.deform.skin`, :func:`render_core.deform.shade`) and gsplat's rasterizer; outputs
-  stay on the GPU;
+- ``cuda``: :class:`DeviceAvatar` on the GPU (blend over the stored pairs of the sparse fp16/bf16/fp32
+  blendshapes, :func:`render_core.deform.skin`, :func:`render_core.deform.shade`) and gsplat's rasterizer;
+  outputs stay on the GPU;
 - ``reference``: :func:`render_core.deform.blend`, :func:`render_core.deform.skin` and the torch rasterizer.
 """
 
@@ -25,21 +25,21 @@ from .avatar import Avatar, Gaussians
 from .camera import Cameras
 from .deform import Frame, blend, skin
 from .errors import OptionError, ShapeError
+from .packed import SparseDeltas
 from .raster import RasterOutput, ShadedSplats, check_backend, gsplat_backend, native, render
 
 # Blendshape storage of a DeviceAvatar; compute is float32 whatever the storage.
 STORAGE_DTYPES: dict[str, torch.dtype] = {"fp32": torch.float32, "fp16": torch.float16, "bf16": torch.bfloat16}
-_PROPERTIES = ("means", "quats", "log_scales", "opacity_logits", "sh")
 
 
 class DeviceAvatar:
     """An avatar resident on one device for the torch pipeline (the cuda backend's; any device works).
 
-    The K blendshapes of all five properties are packed once into one [K, N * D] matrix in ``precision``
-    ("fp32", "fp16" or "bf16"; default the avatar's), so Eq. 1 for B frames is one matrix product that reads the
-    blendshapes once per batch, added to the float32 neutral. Everything else (LBS weights, joints, pose
-    correctives, eyelids, mouth) is float32 on the device; :func:`render_core.deform.skin` and
-    :func:`render_core.deform.shade` run on it unchanged.
+    The blendshapes stay sparse (:class:`~render_core.packed.SparseDeltas`, the layout schema-2 bundles store) in
+    ``precision`` ("fp32", "fp16" or "bf16"; default the avatar's): Eq. 1 for B frames multiplies only the stored
+    (Gaussian, blendshape) pairs, one gather and one scatter-add per table, added to the float32 neutral.
+    Everything else (LBS weights, joints, pose correctives, eyelids, mouth) is float32 on the device;
+    :func:`render_core.deform.skin` and :func:`render_core.deform.shade` run on it unchanged.
     """
 
     def __init__(self, avatar: Avatar, device: torch.device | str, precision: str | None = None):
@@ -47,29 +47,20 @@ class DeviceAvatar:
         if precision not in STORAGE_DTYPES:
             raise OptionError(f"must be one of {', '.join(STORAGE_DTYPES)}, got {precision!r}", field="precision")
         self.device, self.precision, self.store = torch.device(device), precision, STORAGE_DTYPES[precision]
-        n, k = avatar.num_gaussians, avatar.num_expressions
-        self.widths = [getattr(avatar.neutral, p)[0].numel() if n else 0 for p in _PROPERTIES]
-        self.sh_shape = tuple(avatar.neutral.sh.shape[1:])
-        self.base = torch.cat([getattr(avatar.neutral, p).reshape(n, -1).to(self.device, torch.float32)
-                               for p in _PROPERTIES], -1).reshape(-1)  # [N * D]
-        self.deltas = torch.cat([getattr(avatar.deltas, p).reshape(k, n, -1).to(self.device, self.store)
-                                 for p in _PROPERTIES], -1).reshape(k, -1)  # [K, N * D]
-        # What skin() reads, float32 on the device; the deltas live in the packed matrix only.
-        self.avatar = replace(avatar, deltas=avatar.deltas.map(lambda t: t[:, :0])).to(torch.float32, self.device)
+        self.deltas = avatar.sparse_deltas().to(self.device, self.store)
+        # What skin() reads, float32 on the device (the neutral is added to the blended sums).
+        self.avatar = replace(avatar, deltas=self.deltas).to(torch.float32, self.device)
+        self.avatar.deltas = self.deltas
         self.raster_mode = avatar.raster_mode
 
     @property
     def nbytes(self) -> int:
-        return self.base.numel() * 4 + self.deltas.numel() * self.deltas.element_size()
+        return sum(t.numel() * t.element_size() for t in self.deltas.tensors().values())
 
     def blend(self, expression: Tensor) -> Gaussians:  # [B, K] -> Gaussians with [B, N, ...] tensors
-        """Eq. 1, B(psi) = B0 + psi dB, for B frames as one [B, K] x [K, N * D] product in the storage precision
-        (coefficients rounded to it, accumulation as the device's matmul does), returned in float32."""
-        b, n = expression.shape[0], self.avatar.num_gaussians
-        e = expression.to(device=self.device, dtype=self.store)
-        rows = (self.base + (e @ self.deltas).float()).reshape(b, n, -1).split(self.widths, -1)
-        return Gaussians(means=rows[0], quats=rows[1], log_scales=rows[2], opacity_logits=rows[3][..., 0],
-                         sh=rows[4].reshape(b, n, *self.sh_shape))
+        """Eq. 1, B(psi) = B0 + psi dB, for B frames over the stored pairs (values in the storage precision,
+        products and sums in float32), returned in float32."""
+        return blend(self.avatar, expression.to(device=self.device, dtype=torch.float32))
 
 
 def _tensors(avatar: Avatar) -> Iterator[Tensor]:
@@ -78,7 +69,7 @@ def _tensors(avatar: Avatar) -> Iterator[Tensor]:
         value = getattr(avatar, f.name)
         if isinstance(value, Tensor):
             yield value
-        elif isinstance(value, Gaussians):
+        elif isinstance(value, Gaussians | SparseDeltas):
             yield from value.tensors().values()
 
 
@@ -148,7 +139,7 @@ class AvatarRenderer:
         own = _storages(_tensors(self._compute_avatar))
         if self.device_avatar is not None:
             dev = self.device_avatar
-            own |= _storages([dev.base, dev.deltas, *_tensors(dev.avatar)])
+            own |= _storages(_tensors(dev.avatar))
         given = _storages(_tensors(self.avatar))
         return held + sum(n for key, n in own.items() if key not in given)
 

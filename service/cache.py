@@ -5,6 +5,12 @@ An entry is a bundle read from the store and packed for the renderer; it counts 
 pin the entries they use; only unpinned entries are evicted. Concurrent requests for one avatar share a single
 load.
 
+The budget is checked twice: before anything is mapped or read, against the bundle file's size (header and data:
+a lower bound of what the entry will count; room is made then, and the bytes are reserved while the load runs, so
+concurrent loads cannot overshoot together), and after the renderer is built, against what the entry really
+holds. A bundle that cannot fit is refused with RESOURCE_EXHAUSTED naming the avatar and the sizes, having
+allocated nothing for it.
+
 A bundle the store recorded as verified loads without the digest and finiteness pass. Each load of a cached
 avatar checks that its file is still the one that was read (inode, size, modification time): a bundle replaced in
 the store, by an upload through another replica, is read again, so no replica keeps serving the old avatar to new
@@ -22,11 +28,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from render_core.avatar import Avatar
-from render_core.bundle import read_bundle_and_manifest
+from render_core.bundle import BundleMappingError, read_bundle_and_manifest
 from render_core.errors import BundleError
 from render_core.renderer import AvatarRenderer
 
-from .errors import FailedPrecondition, ResourceExhausted
+from .errors import FailedPrecondition, NotFound, ResourceExhausted
 from .metrics import Metrics
 from .store import BundleStore
 
@@ -53,6 +59,7 @@ class AvatarCache:
         self.backend, self.threads = backend, threads
         self._entries: OrderedDict[str, Loaded] = OrderedDict()  # least recently used first
         self._loading: dict[str, asyncio.Future[Loaded]] = {}
+        self._reserved: dict[str, int] = {}  # loads in progress: the bytes admitted for them before reading
 
     @property
     def used(self) -> int:
@@ -80,10 +87,15 @@ class AvatarCache:
             return await asyncio.shield(self._loading[avatar_id])
         self.metrics.cache_misses.inc()
         path = self.store.existing(avatar_id)
+        # Before mapping or reading anything: the file's size (a lower bound of the entry) must fit.
+        admitted = _file_bytes(path, avatar_id)
+        self._make_room(admitted, avatar_id, before_reading=True)
         future: asyncio.Future[Loaded] = asyncio.get_running_loop().create_future()
         self._loading[avatar_id] = future
+        self._reserved[avatar_id] = admitted
         try:
             entry = await asyncio.to_thread(self._read, avatar_id, path)
+            del self._reserved[avatar_id]
             self._make_room(entry.memory_bytes, avatar_id)
             self._entries[avatar_id] = entry
             self._update_gauges()
@@ -97,6 +109,7 @@ class AvatarCache:
             raise
         finally:
             del self._loading[avatar_id]
+            self._reserved.pop(avatar_id, None)
 
     async def acquire(self, avatar_id: str) -> Loaded:
         entry = await self.load(avatar_id)
@@ -115,22 +128,40 @@ class AvatarCache:
     def _read(self, avatar_id: str, path: Path) -> Loaded:
         return read_entry(avatar_id, path, self.backend, self.threads, verify=not self.store.verified(path))
 
-    def _make_room(self, need: int, for_id: str) -> None:
+    def _make_room(self, need: int, for_id: str, *, before_reading: bool = False) -> None:
+        """Evict unpinned avatars, least recently used first, until ``need`` more bytes fit beside the loaded
+        avatars and the loads in progress; ResourceExhausted naming the avatar and the sizes when they cannot."""
+        what = f"its bundle file is {_mb(need)}" if before_reading else f"it needs {_mb(need)}"
         if need > self.budget:
-            raise ResourceExhausted(f"avatar {for_id!r} needs {need / 1e6:.0f} MB, more than the cache budget "
-                                    f"of {self.budget / 1e6:.0f} MB", field="avatar_id")
+            raise ResourceExhausted(f"avatar {for_id!r} does not fit in this replica's cache: {what}, more than the "
+                                    f"cache budget of {_mb(self.budget)}", field="avatar_id")
+        reserved = sum(n for k, n in self._reserved.items() if k != for_id)
         for victim in [k for k, e in self._entries.items() if e.pins == 0]:
-            if self.used + need <= self.budget:
+            if self.used + reserved + need <= self.budget:
                 break
             log.info("evicting avatar %s (least recently used)", victim)
             del self._entries[victim]
-        if self.used + need > self.budget:
-            raise ResourceExhausted(f"no room for avatar {for_id!r}: {self.used / 1e6:.0f} MB of the "
-                                    f"{self.budget / 1e6:.0f} MB budget are held by avatars in use", field="avatar_id")
+            self._update_gauges()
+        if self.used + reserved + need > self.budget:
+            loading = f" and {_mb(reserved)} by loads in progress" if reserved else ""
+            raise ResourceExhausted(f"no room for avatar {for_id!r} ({what}): {_mb(self.used)} of the "
+                                    f"{_mb(self.budget)} budget are held by avatars in use{loading}",
+                                    field="avatar_id")
 
     def _update_gauges(self) -> None:
         self.metrics.cache_bytes.set(self.used)
         self.metrics.cache_avatars.set(len(self._entries))
+
+
+def _mb(n: int) -> str:
+    return f"{n / 1e6:.1f} MB"
+
+
+def _file_bytes(path: Path, avatar_id: str) -> int:
+    try:
+        return path.stat().st_size
+    except FileNotFoundError:
+        raise NotFound(f"avatar {avatar_id!r} was removed from the bundle store", field="avatar_id") from None
 
 
 def _file_id(path: Path) -> tuple[int, int, int]:
@@ -147,6 +178,8 @@ def read_entry(avatar_id: str, path: Path, backend: str | None = None, threads: 
     t0 = time.perf_counter()
     try:
         avatar, manifest = read_bundle_and_manifest(path, verify=verify)
+    except BundleMappingError as e:  # this machine's limit, not the file's fault
+        raise ResourceExhausted(f"avatar {avatar_id!r} cannot be loaded: {e.detail}", field="avatar_id") from None
     except BundleError as e:
         raise FailedPrecondition(f"avatar {avatar_id!r} has a broken bundle in the store: {e}",
                                  field="avatar_id") from None

@@ -9,6 +9,12 @@ Integrity is paid once, when a bundle enters the store: beside ``<id>.bundle`` t
 digest). Every replica sharing the folder sees the record; a load whose file still has that size and header
 trusts it and skips the full pass (:meth:`BundleStore.verified`). A file replaced behind the store's back (a
 different size or header) has no matching record and is fully verified when it is next loaded.
+
+The folder is created once, when it was never there (the first start on an empty data dir). A folder that this
+process has seen and that is gone (an unmounted volume, a deleted directory) is an outage, not an empty store: every
+call that needs it raises :class:`~service.errors.Unavailable` naming the folder, nothing recreates it, and
+:meth:`BundleStore.reachable` stays false (readiness) until it is back. Staged uploads (``.upload-*.tmp``) and the
+atomic writers' temporary files left by a killed process are removed at start (:meth:`BundleStore.clean_stale`).
 """
 
 from __future__ import annotations
@@ -18,16 +24,18 @@ import json
 import os
 import re
 import tempfile
+import time
 from pathlib import Path
 
 from render_core.atomic import atomic_path, publish
-from render_core.bundle import read_manifest, validate_bundle
+from render_core.bundle import BundleMappingError, read_manifest, validate_bundle
 from render_core.errors import BundleError
 
-from .errors import InvalidArgument, NotFound
+from .errors import InvalidArgument, NotFound, ResourceExhausted, Unavailable
 
 ID_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
 SUFFIX = ".bundle"
+STAGED_PREFIX = ".upload-"  # <root>/.upload-XXXX.tmp: an upload being received or validated
 RECORD = ".verified"  # <id>.bundle.verified: what the store verified (never ends in SUFFIX, so never an id)
 _MAX_HEADER = 100 << 20  # as the bundle reader's limit: a longer header is not a bundle
 
@@ -42,26 +50,51 @@ def check_id(avatar_id: str, field: str = "avatar_id") -> str:
 class BundleStore:
     def __init__(self, root: str | os.PathLike):
         self.root = Path(root)
+        self._seen = self.root.is_dir()  # once seen, a missing folder is an outage, never recreated
 
     def ensure(self) -> None:
-        self.root.mkdir(parents=True, exist_ok=True)
+        """Create the folder if it was never there (first start); Unavailable when it existed and is gone."""
+        if not self.root.is_dir():
+            self._check_present()
+            self.root.mkdir(parents=True, exist_ok=True)
+        self._seen = True
 
     def reachable(self) -> bool:
-        return self.root.is_dir() and os.access(self.root, os.R_OK | os.W_OK | os.X_OK)
+        return self.problem() is None
+
+    def problem(self) -> str | None:
+        """Why the store is not usable (readiness says it), or None."""
+        if not self.root.is_dir():
+            return f"the bundle store folder {self.root} is missing"
+        if not os.access(self.root, os.R_OK | os.W_OK | os.X_OK):
+            return f"the bundle store folder {self.root} is not readable and writable by this process"
+        self._seen = True
+        return None
+
+    def _check_present(self) -> bool:
+        """Whether the folder is there; Unavailable when it was there before (False: never created yet)."""
+        if self.root.is_dir():
+            self._seen = True
+            return True
+        if self._seen:
+            raise Unavailable(f"the bundle store folder {self.root} is missing (it is not recreated; the avatars "
+                              "are unavailable until it is back)", field="bundle_store")
+        return False
 
     def path(self, avatar_id: str) -> Path:
         return self.root / f"{check_id(avatar_id)}{SUFFIX}"
 
     def ids(self) -> list[str]:
-        if not self.root.is_dir():
+        if not self._check_present():
             return []
         return sorted(p.name[: -len(SUFFIX)] for p in self.root.iterdir()
                       if p.name.endswith(SUFFIX) and ID_PATTERN.match(p.name[: -len(SUFFIX)]))
 
     def existing(self, avatar_id: str) -> Path:
-        """The bundle's path; NotFound when the store has no such avatar."""
+        """The bundle's path; NotFound when the store has no such avatar (Unavailable when the store is gone)."""
         path = self.path(avatar_id)
         if not path.is_file():
+            self._check_present()
             known = self.ids()
             raise NotFound(f"no avatar {avatar_id!r} in the bundle store"
                            + (f" (avatars: {', '.join(known[:20])})" if known else " (the store is empty)"),
@@ -72,10 +105,30 @@ class BundleStore:
         return read_manifest(self.existing(avatar_id))
 
     def staging(self) -> tuple[int, Path]:
-        """An open file descriptor and path for an upload in progress (same folder: the rename is atomic)."""
+        """An open file descriptor and path for an upload in progress (same folder: the rename is atomic).
+        Unavailable when the folder is gone (it is created only if it never existed)."""
         self.ensure()
-        fd, name = tempfile.mkstemp(prefix=".upload-", suffix=".tmp", dir=self.root)
+        fd, name = tempfile.mkstemp(prefix=STAGED_PREFIX, suffix=".tmp", dir=self.root)
         return fd, Path(name)
+
+    def clean_stale(self, older_than: float) -> list[str]:
+        """Remove the temporary files a killed process left in the store (staged uploads, the atomic writers'
+        ``.<name>.<hex>.tmp``) not modified for ``older_than`` seconds: an upload in progress elsewhere (another
+        replica sharing the folder) writes more often than its body timeout, so it is never taken. The names
+        removed."""
+        if not self.root.is_dir():
+            return []
+        cutoff, removed = time.time() - older_than, []
+        for p in self.root.iterdir():
+            if not (p.name.startswith(".") and p.name.endswith(".tmp")):
+                continue
+            try:
+                if p.is_file() and not p.is_symlink() and p.stat().st_mtime < cutoff:
+                    p.unlink()
+                    removed.append(p.name)
+            except FileNotFoundError:
+                pass  # someone else finished or removed it
+        return removed
 
     def commit(self, staged: Path, avatar_id: str) -> dict:
         """Validate a staged upload, move it into place as ``avatar_id`` and record it as verified; the staged file
@@ -84,6 +137,8 @@ class BundleStore:
             target = self.path(avatar_id)
             try:
                 manifest = validate_bundle(staged)
+            except BundleMappingError as e:  # this machine's limit, not the upload's fault
+                raise ResourceExhausted(f"the bundle cannot be checked here: {e.detail}", field="bundle") from None
             except BundleError as e:
                 raise InvalidArgument(f"not a valid avatar bundle: {e}", field="bundle") from None
             identity = _identity(staged)

@@ -728,11 +728,11 @@ def test_sparse_deltas_are_skipped_and_render_the_same(simd, precision, avatar):
     zero = pair | pair_top
     assert 0 < int(zero.sum()) < n * k and int(pair_top.sum()) > 0
     stats = native.NativeAvatar(sparse, precision).stats
-    assert stats.pairs_total == n * k
-    assert stats.pairs_stored == n * k - int(zero.sum())
+    assert stats.pairs_total == 2 * n * k  # a geometry and a colour entry per pair
+    assert stats.pairs_stored == 2 * (n * k - int(zero.sum()))
     assert stats.stored_fraction == (n * k - int(zero.sum())) / (n * k)
     dense_stats = native.NativeAvatar(avatar, precision).stats
-    assert dense_stats.pairs_stored == n * k and dense_stats.stored_fraction == 1.0
+    assert dense_stats.pairs_stored == 2 * n * k and dense_stats.stored_fraction == 1.0
     assert stats.blend_bytes < dense_stats.blend_bytes
 
     frame = random_frames(avatar, 2, torch.Generator().manual_seed(8))
@@ -746,17 +746,20 @@ def test_sparse_deltas_are_skipped_and_render_the_same(simd, precision, avatar):
 
 
 def test_pair_changing_any_property_is_stored(avatar):
-    """A pair is stored when any property changes (here: position and rotation deltas zero, the rest not), and
-    dropped only when all five are zero."""
-    k = avatar.num_expressions
-    unmoved, pair = zero_pairs(avatar, torch.ones(avatar.num_gaussians, dtype=torch.bool),
-                               torch.ones(k, dtype=torch.bool), fields=["means", "quats"])
+    """A pair is stored in the geometry table when any of its position, rotation, scale or opacity deltas is
+    non-zero (here: position and rotation zero, the rest not), in the colour table when any SH delta is, and
+    dropped from a table only when all of that table's values are zero."""
+    k, n = avatar.num_expressions, avatar.num_gaussians
+    everywhere = torch.ones(n, dtype=torch.bool)
+    unmoved, pair = zero_pairs(avatar, everywhere, torch.ones(k, dtype=torch.bool), fields=["means", "quats"])
     stats = native.NativeAvatar(unmoved).stats
-    assert stats.pairs_stored == stats.pairs_total == int(pair.sum())
-    sh_only, _ = zero_pairs(avatar, torch.ones(avatar.num_gaussians, dtype=torch.bool),
-                            torch.ones(k, dtype=torch.bool), fields=["means", "quats", "log_scales", "opacity_logits"])
-    assert native.NativeAvatar(sh_only).stats.stored_fraction == 1.0
-    none, _ = zero_pairs(avatar, torch.ones(avatar.num_gaussians, dtype=torch.bool), torch.ones(k, dtype=torch.bool))
+    assert stats.pairs_stored == stats.pairs_total == 2 * int(pair.sum())
+    sh_only, _ = zero_pairs(avatar, everywhere, torch.ones(k, dtype=torch.bool),
+                            fields=["means", "quats", "log_scales", "opacity_logits"])
+    deltas = sh_only.sparse_deltas()
+    assert (deltas.geometry.count, deltas.color.count) == (0, n * k)
+    assert native.NativeAvatar(sh_only).stats.stored_fraction == 0.5
+    none, _ = zero_pairs(avatar, everywhere, torch.ones(k, dtype=torch.bool))
     packed_none = native.NativeAvatar(none)
     assert packed_none.stats.pairs_stored == 0 and packed_none.stats.stored_fraction == 0.0
     # Nothing stored renders as the full avatar with zero expression (same pose and eyelids).
@@ -784,14 +787,15 @@ def _wide_avatar(k: int):
 @pytest.mark.parametrize("k", [65536, 65537])
 def test_last_of_many_blendshapes_is_applied(k):
     """Blendshape indices near and past 2^16 (the packed index type): the last blendshape must act as itself, or
-    the avatar must be refused with a ValueError naming the limit."""
+    the avatar must be refused with an error naming the limit."""
     av = _wide_avatar(k)
     try:
         packed = native.NativeAvatar(av)
-    except ValueError as err:
+    except ShapeError as err:
         assert k > 65536 and "65536" in str(err)
         return
-    assert packed.stats.pairs_stored == 16 and packed.stats.stored_fraction == 16 / (8 * k)
+    # Geometry: blendshapes 0 and k-1 on all 8 Gaussians; colour: blendshape k-1.
+    assert packed.stats.pairs_stored == 24 and packed.stats.stored_fraction == 24 / (2 * 8 * k)
     frame = Frame.neutral(av, 2)
     frame.expression[0, -1] = 1.0
     frame.expression[1, 0] = 0.5

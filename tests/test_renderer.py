@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from render_core.raster import native
-from render_core.renderer import AvatarRenderer
+from render_core.renderer import STORAGE_DTYPES, AvatarRenderer
 from render_core.tools.synth import synth_avatar
 
 
@@ -44,11 +44,12 @@ def test_cuda_nbytes_counts_the_device_avatar_emulated(monkeypatch, avatar, prec
     gsplat_cpu.emulate_cuda_backend(monkeypatch)  # the cuda path, its device the CPU
     renderer = AvatarRenderer(avatar, "cuda", precision=precision)
     dev = renderer.device_avatar
-    n, k = avatar.num_gaussians, avatar.num_expressions
-    width = sum(dev.widths)
-    packed = n * width * 4 + k * n * width * {"fp32": 4, "fp16": 2, "bf16": 2}[precision]
-    assert dev.nbytes == packed
-    # On the CPU the float32 tensors skinning reads are the avatar's own: only the packed matrix is new.
+    sparse = avatar.sparse_deltas()
+    size = {"fp32": 4, "fp16": 2, "bf16": 2}[precision]
+    packed = sum(t.numel() * (size if t.is_floating_point() else t.element_size())
+                 for t in sparse.tensors().values())
+    assert dev.nbytes == packed and dev.deltas.dtype == STORAGE_DTYPES[precision]
+    # On the CPU the float32 tensors skinning reads are the avatar's own: only the sparse blendshapes are new.
     assert renderer.nbytes == packed
     # An fp16 avatar's pose correctives and eyelid offsets get float32 copies on the device too.
     half = avatar.with_precision("fp16")
@@ -68,3 +69,25 @@ def test_cuda_nbytes_matches_the_gpu_memory_it_allocates(avatar):
     # Everything of the avatar is copied to the GPU; the allocator rounds each tensor up to 512 bytes.
     assert renderer.nbytes > 0
     assert renderer.nbytes <= allocated <= renderer.nbytes + 512 * 64
+
+
+@pytest.mark.parametrize("precision", ["fp32", "fp16", "bf16"])
+def test_device_avatar_blends_only_the_stored_pairs_cpu_emulation(precision):
+    """The cuda path's blend (DeviceAvatar, here on the CPU) reads the sparse layout of schema-2 bundles: only
+    the non-zero (Gaussian, blendshape) pairs are on the device, and Eq. 1 over them equals the dense blend."""
+    from render_core.deform import blend
+    from render_core.renderer import DeviceAvatar
+
+    avatar = synth_avatar(gaussians=500, blendshapes=7, seed=9, local=True)  # compact: most pairs are zero
+    dense = avatar.dense_deltas()
+    geometry = torch.cat([dense.means, dense.quats, dense.log_scales, dense.opacity_logits[..., None]], -1)
+    dev = DeviceAvatar(avatar, "cpu", precision)
+    assert dev.deltas.geometry.count == int(geometry.ne(0).any(-1).sum()) < 500 * 7
+    assert dev.deltas.color.count == int(dense.sh.flatten(2).ne(0).any(-1).sum())
+    assert dev.nbytes < sum(t.numel() for t in dense.tensors().values()) * STORAGE_DTYPES[precision].itemsize
+    psi = torch.rand(3, 7, generator=torch.Generator().manual_seed(1)) * 2 - 0.5
+    want = blend(avatar.with_precision("fp32"), psi.to(STORAGE_DTYPES[precision]).float())
+    got = dev.blend(psi)
+    tol = {"fp32": 1e-6, "fp16": 2e-3, "bf16": 2e-2}[precision]
+    for key, t in got.tensors().items():
+        torch.testing.assert_close(t, getattr(want, key), atol=tol, rtol=tol, msg=key)

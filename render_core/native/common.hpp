@@ -13,21 +13,27 @@ constexpr float kAlphaMax = 0.999f;
 constexpr float kTStop = 1e-4f;
 constexpr int kMaxBatch = 64;  // frames blended together per pass (larger batches are split)
 
-// A packed avatar (built by render_core/raster/native.py; the arrays belong to Python).
-// Row layout of base/vals: position 3, quaternion 4 (wxyz), log-scale 3, opacity logit 1, SH 3C
-// (coefficient-major, channel-minor): D = 11 + 3C values. base rows are padded with zeros to Dp (a multiple of 16);
-// vals rows are packed at stride D (no padding: fewer bytes to stream) and the array ends with Dp - D spare
-// values, so full-width loads of the last row stay inside it (lanes past D are never used).
+// A packed avatar (render_core/packed.py: the layout of a schema-2 bundle; the arrays belong to Python).
+// base rows (Dp = 16 + ceil16(3C) floats): position 3, quaternion 4 (wxyz), log-scale 3, opacity logit 1, 5 unused,
+// then SH 3C (coefficient-major, channel-minor) and unused to Dp. The blendshapes are two CSR tables over the face
+// Gaussians: geometry pairs of 11 values (added to base columns 0..15) and colour pairs of 3C values (added to
+// columns 16..Dp). Pair rows are packed at stride len and each array ends with ceil16(len) - len spare values, so
+// 16-value loads of the last row stay inside it; lanes past len land in unused columns.
+struct PairsView {
+    const int32_t* row_ptr = nullptr;  // [n_face + 1]
+    const uint16_t* col = nullptr;     // [nnz] blendshape index of each stored pair
+    const void* vals = nullptr;        // [nnz * len + ceil16(len) - len]
+    int len = 0;
+};
+
 struct AvatarView {
     int n_total = 0;  // face + mouth Gaussians
     int n_face = 0;
-    int K = 0, J = 0, C = 0, D = 0, Dp = 0;
+    int K = 0, J = 0, C = 0, Dp = 0;
     int P = 0, Ppad = 0;  // pose-corrective features 9 (J - 1), padded to 16
-    bool half = false;    // vals and pc are fp16 (uint16 bits) instead of fp32
+    bool half = false;    // pair values and pc are fp16 (uint16 bits) instead of fp32
     const float* base = nullptr;        // [n_total, Dp]
-    const int32_t* row_ptr = nullptr;   // [n_total + 1] CSR over (Gaussian, blendshape) pairs stored
-    const uint16_t* col = nullptr;      // [nnz] blendshape index of each stored pair
-    const void* vals = nullptr;         // [nnz * D + Dp - D] deltas
+    PairsView geometry, color;
     const void* pc = nullptr;           // [n_face, 3, Ppad] pose correctives, or null
     const float* eyelid = nullptr;      // [n_face, 2, 3] eyelid offsets, or null
     const float* lbs = nullptr;         // [J, n_total] skinning weights (mouth: one-hot on its joint)
@@ -35,7 +41,6 @@ struct AvatarView {
     const int32_t* parents = nullptr;   // [J]
 };
 
-// One pinhole camera (OpenCV, world-to-camera) and its image.
 struct Cam {
     float fx, fy, cx, cy;
     float R[9];

@@ -20,48 +20,70 @@ constexpr int kMaxLanes = 16;
 
 // ------------------------------------------------------------------------------------------------ blend
 
-// acc[g][d..d + NV W) += sum_j psi[g][col[j]] vals[j][d..] for GB frames g: NV vectors of accumulators per frame
-// stay in registers while the pairs stream by.
+// acc[g][d..d + NV W) += sum_j psi[g][col[j]] vals[j][d..] for GB frames g (acc rows DP floats apart): NV vectors
+// of accumulators per frame stay in registers while the pairs stream by.
 template <class T, int DP, int GB, int NV>
-static inline void blend_slice(const AvatarView& av, const float* psi, const T* vals, int j0, int j1, float* acc,
-                               int d) {
+static inline void blend_slice(const PairsView& p, int K, const float* psi, int j0, int j1, float* acc, int d) {
+    const T* vals = static_cast<const T*>(p.vals);
     F a[GB][NV];
     for (int g = 0; g < GB; ++g)
         for (int v = 0; v < NV; ++v) a[g][v] = V::load(acc + g * DP + d + v * W);
     for (int j = j0; j < j1; ++j) {
-        const int k = av.col[j];
-        const T* row = vals + size_t(j) * av.D + d;
+        const int k = p.col[j];
+        const T* row = vals + size_t(j) * p.len + d;
         F x[NV];
         for (int v = 0; v < NV; ++v) x[v] = V::load(row + v * W);
         for (int g = 0; g < GB; ++g) {
-            const F p = V::set1(psi[g * av.K + k]);
-            for (int v = 0; v < NV; ++v) a[g][v] = V::fma(p, x[v], a[g][v]);
+            const F w = V::set1(psi[g * K + k]);
+            for (int v = 0; v < NV; ++v) a[g][v] = V::fma(w, x[v], a[g][v]);
         }
     }
     for (int g = 0; g < GB; ++g)
         for (int v = 0; v < NV; ++v) V::store(acc + g * DP + d + v * W, a[g][v]);
 }
 
-// acc[g][0..DP) += sum_j psi[g][col[j]] vals[j] for GB frames g, two vectors of the row at a time (and one for
-// the last vector when DP is an odd number of vectors, e.g. 16 or 48 floats with 16 lanes).
-template <class T, int DP, int GB>
-static inline void blend_group(const AvatarView& av, const float* psi, const T* vals, int j0, int j1, float* acc) {
-    static_assert(DP % W == 0, "rows are whole vectors");
-    if constexpr (W >= 16 && DP / W <= 4) {  // 32 registers: the whole row's accumulators of GB frames fit
-        blend_slice<T, DP, GB, DP / W>(av, psi, vals, j0, j1, acc, 0);
+// acc[g][0..CW) += sum_j psi[g][col[j]] vals[j] for GB frames g, two vectors of the row at a time (and one for
+// the last vector when CW is an odd number of vectors, e.g. 16 or 48 floats with 16 lanes).
+template <class T, int DP, int CW, int GB>
+static inline void blend_group(const PairsView& p, int K, const float* psi, int j0, int j1, float* acc) {
+    static_assert(CW % W == 0, "pair rows are read as whole vectors");
+    if constexpr (W >= 16 && CW / W <= 4) {  // 32 registers: the whole row's accumulators of GB frames fit
+        blend_slice<T, DP, GB, CW / W>(p, K, psi, j0, j1, acc, 0);
         return;
     }
     int d = 0;
-    for (; d + 2 * W <= DP; d += 2 * W) blend_slice<T, DP, GB, 2>(av, psi, vals, j0, j1, acc, d);
-    if constexpr (DP % (2 * W) != 0) blend_slice<T, DP, GB, 1>(av, psi, vals, j0, j1, acc, d);
+    for (; d + 2 * W <= CW; d += 2 * W) blend_slice<T, DP, GB, 2>(p, K, psi, j0, j1, acc, d);
+    if constexpr (CW % (2 * W) != 0) blend_slice<T, DP, GB, 1>(p, K, psi, j0, j1, acc, d);
+}
+
+// The pairs of face Gaussian n, CW columns wide, added to acc (frame b's columns at acc + b DP).
+template <class T, int DP, int CW>
+static inline void blend_pairs(const PairsView& p, int K, const float* psi, int B, int n, float* acc) {
+    const int j0 = p.row_ptr[n], j1 = p.row_ptr[n + 1];
+    if (j0 == j1) return;
+    if (B == 1) {  // the whole row's accumulators in registers
+        const T* vals = static_cast<const T*>(p.vals);
+        for (int j = j0; j < j1; ++j) {
+            const F w = V::set1(psi[p.col[j]]);
+            const T* v = vals + size_t(j) * p.len;
+#pragma GCC unroll 16
+            for (int d = 0; d < CW; d += W) V::store(acc + d, V::fma(w, V::load(v + d), V::load(acc + d)));
+        }
+        return;
+    }
+    // Groups of up to 4 frames x 2 vectors of accumulators in registers; the row stays in L1.
+    int b = 0;
+    for (; b + 4 <= B; b += 4) blend_group<T, DP, CW, 4>(p, K, psi + b * K, j0, j1, acc + b * DP);
+    for (; b < B; ++b) blend_group<T, DP, CW, 1>(p, K, psi + b * K, j0, j1, acc + b * DP);
 }
 
 template <class T, int DP>
 static void blend_t(const AvatarView& av, const float* psi, const float* pose_feat, const float* eyelids, int B,
                     float* out, int out_stride, int n0, int n1) {
+    constexpr int kGeo = 16;  // geometry columns 0..15 (11 used), then colour columns
     alignas(64) float acc[kMaxBatch * DP];
-    const T* vals = static_cast<const T*>(av.vals);
     const T* pc = static_cast<const T*>(av.pc);
+    const int sh = 3 * av.C;
     bool any_pose[kMaxBatch];
     for (int b = 0; b < B; ++b) {
         any_pose[b] = false;
@@ -70,18 +92,9 @@ static void blend_t(const AvatarView& av, const float* psi, const float* pose_fe
     for (int n = n0; n < n1; ++n) {
         const float* base = av.base + size_t(n) * DP;
         for (int b = 0; b < B; ++b) std::memcpy(acc + b * DP, base, sizeof(float) * DP);
-        const int j0 = av.row_ptr[n], j1 = av.row_ptr[n + 1];
-        if (B == 1) {  // the whole row's accumulators in registers
-            for (int j = j0; j < j1; ++j) {
-                const F w = V::set1(psi[av.col[j]]);
-                const T* v = vals + size_t(j) * av.D;
-#pragma GCC unroll 16
-                for (int d = 0; d < DP; d += W) V::store(acc + d, V::fma(w, V::load(v + d), V::load(acc + d)));
-            }
-        } else {  // groups of up to 4 frames x 2 vectors of accumulators in registers; the row stays in L1
-            int b = 0;
-            for (; b + 4 <= B; b += 4) blend_group<T, DP, 4>(av, psi + b * av.K, vals, j0, j1, acc + b * DP);
-            for (; b < B; ++b) blend_group<T, DP, 1>(av, psi + b * av.K, vals, j0, j1, acc + b * DP);
+        if (n < av.n_face) {
+            blend_pairs<T, DP, kGeo>(av.geometry, av.K, psi, B, n, acc);
+            blend_pairs<T, DP, DP - kGeo>(av.color, av.K, psi, B, n, acc + kGeo);
         }
         if (pc != nullptr && n < av.n_face) {
             for (int b = 0; b < B; ++b) {
@@ -103,12 +116,14 @@ static void blend_t(const AvatarView& av, const float* psi, const float* pose_fe
                 for (int c = 0; c < 3; ++c) acc[b * DP + c] += e0 * e[c] + e1 * e[3 + c];
             }
         }
-        for (int b = 0; b < B; ++b)
-        {
-            // Lane-interleaved blocks of W Gaussians ([block][d][lane]), what deform_project loads as vectors.
+        for (int b = 0; b < B; ++b) {
+            // Lane-interleaved blocks of W Gaussians ([block][d][lane], d over the 11 + 3C used values), what
+            // deform_project loads as vectors.
             const int i = n - n0, block = i / W, lane = i % W;
             float* o = out + size_t(b) * out_stride * DP + (size_t(block) * DP) * W + lane;
-            for (int d = 0; d < 11 + 3 * av.C; ++d) o[d * W] = acc[b * DP + d];
+            const float* a = acc + b * DP;
+            for (int d = 0; d < 11; ++d) o[d * W] = a[d];
+            for (int d = 0; d < sh; ++d) o[(11 + d) * W] = a[kGeo + d];
         }
     }
 }
@@ -117,7 +132,6 @@ template <class T>
 static void blend_dp(const AvatarView& av, const float* psi, const float* pf, const float* el, int B, float* out,
                      int stride, int n0, int n1) {
     switch (av.Dp) {
-        case 16: return blend_t<T, 16>(av, psi, pf, el, B, out, stride, n0, n1);
         case 32: return blend_t<T, 32>(av, psi, pf, el, B, out, stride, n0, n1);
         case 48: return blend_t<T, 48>(av, psi, pf, el, B, out, stride, n0, n1);
         default: return blend_t<T, 64>(av, psi, pf, el, B, out, stride, n0, n1);

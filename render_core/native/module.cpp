@@ -50,17 +50,37 @@ void require_shape(const A& a, std::initializer_list<size_t> shape, const char* 
 bool is_f32(const AnyIn& a) { return a.dtype() == nb::dtype<float>(); }
 bool is_u16(const AnyIn& a) { return a.dtype() == nb::dtype<uint16_t>(); }
 
+// One CSR table of blendshape pairs over the n_face face Gaussians (render_core/packed.py, "Pairs").
+bs::PairsView check_pairs(const In<int32_t>& row_ptr, const In<uint16_t>& col, const AnyIn& vals, int n_face, int K,
+                          int len, const char* name) {
+    const std::string field(name);
+    require_shape(row_ptr, {size_t(n_face) + 1}, (field + ".row_ptr").c_str());
+    const int32_t* rp = row_ptr.data();
+    require(rp[0] == 0, field + ".row_ptr[0] must be 0");
+    for (int i = 0; i < n_face; ++i) require(rp[i + 1] >= rp[i], field + ".row_ptr must not decrease");
+    const size_t nnz = size_t(rp[n_face]);
+    require_shape(col, {nnz}, (field + ".col").c_str());
+    for (size_t i = 0; i < nnz; ++i) require(col.data()[i] < K, field + ".col out of range");
+    const size_t spare = size_t((len + 15) / 16 * 16 - len);
+    require_shape(vals, {nnz * size_t(len) + spare}, (field + ".vals").c_str());
+    bs::PairsView p;
+    p.row_ptr = rp, p.col = col.data(), p.vals = vals.data(), p.len = len;
+    return p;
+}
+
 class NativeAvatar {
    public:
-    NativeAvatar(In<float> base, In<int32_t> row_ptr, In<uint16_t> col, AnyIn vals, AnyIn pc, In<float> eyelid,
-                 In<float> lbs, In<float> joints, In<int32_t> parents, int n_face, int K, int C)
-        : base_(base), row_ptr_(row_ptr), col_(col), vals_(vals), pc_(pc), eyelid_(eyelid), lbs_(lbs),
-          joints_(joints), parents_(parents) {
-        require(base.ndim() == 2 && base.shape(1) % 16 == 0 && base.shape(1) <= 64, "base: expected [N, Dp<=64]");
-        const int n = int(base.shape(0)), dp = int(base.shape(1));
+    NativeAvatar(In<float> base, In<int32_t> geo_ptr, In<uint16_t> geo_col, AnyIn geo_vals, In<int32_t> sh_ptr,
+                 In<uint16_t> sh_col, AnyIn sh_vals, AnyIn pc, In<float> eyelid, In<float> lbs, In<float> joints,
+                 In<int32_t> parents, int n_face, int K, int C)
+        : base_(base), geo_ptr_(geo_ptr), sh_ptr_(sh_ptr), geo_col_(geo_col), sh_col_(sh_col), geo_vals_(geo_vals),
+          sh_vals_(sh_vals), pc_(pc), eyelid_(eyelid), lbs_(lbs), joints_(joints), parents_(parents) {
         require(C == 1 || C == 4 || C == 9 || C == 16, "C must be 1, 4, 9 or 16");
-        require(11 + 3 * C <= dp, "base: row too short for the SH coefficients");
+        const int dp = 16 + (3 * C + 15) / 16 * 16;
+        require(base.ndim() == 2 && base.shape(1) == size_t(dp), "base: expected [N, 16 + ceil16(3C)]");
+        const int n = int(base.shape(0));
         require(n_face >= 0 && n_face <= n, "n_face out of range");
+        require(K >= 0 && K <= 65536, "at most 65536 blendshapes");
         const int J = int(joints.shape(0));
         require_shape(joints, {size_t(J), 3}, "joints");
         require(J >= 1 && J <= 32, "joints: 1 to 32 joints");
@@ -68,27 +88,20 @@ class NativeAvatar {
         for (int j = 0; j < J; ++j)
             require(parents.data()[j] < j && (parents.data()[j] >= 0 || j == 0), "parents must precede children");
         require_shape(lbs, {size_t(J), size_t(n)}, "lbs");
-        require_shape(row_ptr, {size_t(n) + 1}, "row_ptr");
-        const int32_t* rp = row_ptr.data();
-        require(rp[0] == 0, "row_ptr[0] must be 0");
-        for (int i = 0; i < n; ++i) require(rp[i + 1] >= rp[i], "row_ptr must not decrease");
-        const size_t nnz = size_t(rp[n]);
-        require_shape(col, {nnz}, "col");
-        for (size_t i = 0; i < nnz; ++i) require(col.data()[i] >= 0 && col.data()[i] < K, "col out of range");
-        require(K <= 65536, "at most 65536 blendshapes");
-        require(is_f32(vals) || is_u16(vals), "vals: float32 or float16 bits (uint16)");
-        const int D = 11 + 3 * C;
-        require_shape(vals, {nnz * D + (dp - D)}, "vals");
-        const bool half = is_u16(vals);
+        const bool half = is_u16(geo_vals);
+        require(is_f32(geo_vals) || half, "geometry.vals: float32 or float16 bits (uint16)");
+        require(half ? is_u16(sh_vals) : is_f32(sh_vals), "color.vals: same storage as geometry.vals");
+        v_.geometry = check_pairs(geo_ptr, geo_col, geo_vals, n_face, K, 11, "geometry");
+        v_.color = check_pairs(sh_ptr, sh_col, sh_vals, n_face, K, 3 * C, "color");
         const int P = 9 * (J - 1), ppad = ((P + 15) / 16) * 16;
         if (pc.size() > 0) {
-            require(half ? is_u16(pc) : is_f32(pc), "pc: same storage as vals");
+            require(half ? is_u16(pc) : is_f32(pc), "pc: same storage as the pair values");
             require_shape(pc, {size_t(n_face), 3, size_t(ppad)}, "pc");
         }
         if (eyelid.size() > 0) require_shape(eyelid, {size_t(n_face), 2, 3}, "eyelid");
-        v_.n_total = n, v_.n_face = n_face, v_.K = K, v_.J = J, v_.C = C, v_.D = D, v_.Dp = dp;
+        v_.n_total = n, v_.n_face = n_face, v_.K = K, v_.J = J, v_.C = C, v_.Dp = dp;
         v_.P = P, v_.Ppad = ppad, v_.half = half;
-        v_.base = base.data(), v_.row_ptr = rp, v_.col = col.data(), v_.vals = vals.data();
+        v_.base = base.data();
         v_.pc = pc.size() > 0 ? pc.data() : nullptr;
         v_.eyelid = eyelid.size() > 0 ? eyelid.data() : nullptr;
         v_.lbs = lbs.data(), v_.joints = joints.data(), v_.parents = parents.data();
@@ -97,9 +110,9 @@ class NativeAvatar {
 
    private:
     In<float> base_;
-    In<int32_t> row_ptr_;
-    In<uint16_t> col_;
-    AnyIn vals_, pc_;
+    In<int32_t> geo_ptr_, sh_ptr_;
+    In<uint16_t> geo_col_, sh_col_;
+    AnyIn geo_vals_, sh_vals_, pc_;
     In<float> eyelid_, lbs_, joints_;
     In<int32_t> parents_;
     bs::AvatarView v_;
@@ -338,10 +351,10 @@ NB_MODULE(_native, m) {
     // OS; nanobind's exit-time report would flag them as leaks although nothing leaks while the process runs.
     nb::set_leak_warnings(false);
     nb::class_<NativeAvatar>(m, "NativeAvatar")
-        .def(nb::init<In<float>, In<int32_t>, In<uint16_t>, AnyIn, AnyIn, In<float>, In<float>, In<float>,
-                      In<int32_t>, int, int, int>(),
-             "base"_a, "row_ptr"_a, "col"_a, "vals"_a, "pc"_a, "eyelid"_a, "lbs"_a, "joints"_a, "parents"_a,
-             "n_face"_a, "K"_a, "C"_a);
+        .def(nb::init<In<float>, In<int32_t>, In<uint16_t>, AnyIn, In<int32_t>, In<uint16_t>, AnyIn, AnyIn,
+                      In<float>, In<float>, In<float>, In<int32_t>, int, int, int>(),
+             "base"_a, "geo_ptr"_a, "geo_col"_a, "geo_vals"_a, "sh_ptr"_a, "sh_col"_a, "sh_vals"_a, "pc"_a,
+             "eyelid"_a, "lbs"_a, "joints"_a, "parents"_a, "n_face"_a, "K"_a, "C"_a);
     m.def("render", &render, "avatar"_a, "expression"_a, "joint_rotations"_a, "eyelids"_a, "K"_a, "R"_a, "t"_a,
           "width"_a, "height"_a, "antialiased"_a, "background"_a, "rgb"_a, "alpha"_a, "depth"_a, "isa"_a = "auto",
           "threads"_a = 0);

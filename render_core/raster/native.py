@@ -6,8 +6,9 @@ Two entry points share the kernels:
   - :func:`rasterize` (and :func:`rasterize_differentiable`, with a C++ backward): shaded splats, as every backend
     takes them (:mod:`render_core.raster.splats`; the ``render()`` backend, tested against the reference
     rasterizer);
-  - :class:`NativeAvatar`: an avatar packed once for streaming reads - neutral rows and the (Gaussian,
-    blendshape) pairs that are not zero, CSR by Gaussian, in fp32 or fp16 - rendered by the fused per-frame
+  - :class:`NativeAvatar`: an avatar in the packed layout of :mod:`render_core.packed` (Gaussian rows and the
+    geometry and colour tables of the (Gaussian, blendshape) pairs that are not zero, fp32 or fp16; an avatar
+    read from a schema-2 bundle already is that layout and is used as mapped) - rendered by the fused per-frame
     pipeline (blend, pose correctives, eyelids, LBS, SH colour, projection, tile binning, depth sort,
     compositing) for B frames in one call.
 Arrays cross into C++ as numpy views of contiguous CPU float32 tensors: no copies.
@@ -24,7 +25,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..avatar import Avatar, Gaussians, check_raster_mode, sh_coeff_count
+from .. import packed
+from ..avatar import Avatar, check_raster_mode, sh_coeff_count
 from ..camera import Cameras
 from ..errors import OptionError, ShapeError
 from .splats import RasterOutput, ShadedSplats
@@ -217,21 +219,10 @@ def rasterize_differentiable(splats: ShadedSplats, cameras: Cameras, background:
     return _Rasterize.apply(*splats.tensors().values(), background, cameras, mode, simd, threads)
 
 
-def _rows(g: Gaussians, width: int, dtype: torch.dtype) -> Tensor:
-    """[..., n, width] packed rows: position, quaternion, log-scale, opacity logit, SH (coefficient-major), zeros."""
-    lead = g.means.shape[:-1]
-    parts = [g.means, g.quats, g.log_scales, g.opacity_logits[..., None], g.sh.reshape(*lead, -1)]
-    rows = torch.cat([p.to(torch.float32) for p in parts], dim=-1)
-    return torch.nn.functional.pad(rows, (0, width - rows.shape[-1])).to(dtype)
-
-
-def _ceil16(x: int) -> int:
-    return (x + 15) // 16 * 16
-
-
 @dataclass
 class PackStats:
-    """What packing kept: stored (Gaussian, blendshape) pairs and the bytes one frame's blend streams."""
+    """What packing kept: the stored entries of the geometry and colour pair tables (each (Gaussian, blendshape)
+    pair has one of each, stored when non-zero: ``pairs_total`` = 2 N K) and the bytes one frame's blend streams."""
 
     pairs_stored: int
     pairs_total: int
@@ -244,7 +235,11 @@ class PackStats:
 
 
 class NativeAvatar:
-    """An avatar packed for the native fused pipeline (once per avatar; the packed arrays stay in memory)."""
+    """An avatar in the packed layout (:mod:`render_core.packed`) for the native fused pipeline.
+
+    An avatar read from a schema-2 bundle already is that layout: its memory-mapped tensors go to the C++ side as
+    they are (no copy; only the small transposed LBS weights are built). Any other avatar is packed once here.
+    """
 
     def __init__(self, avatar: Avatar, precision: str | None = None):
         _require()
@@ -253,59 +248,54 @@ class NativeAvatar:
         if precision not in PRECISIONS:
             raise OptionError(f"must be one of {PRECISIONS}, got {precision!r}", field="precision")
         store = torch.float16 if precision == "fp16" else torch.float32
-        n, k, j, m = avatar.num_gaussians, avatar.num_expressions, avatar.num_joints, avatar.num_mouth
+        n, k, j = avatar.num_gaussians, avatar.num_expressions, avatar.num_joints
         c = sh_coeff_count(avatar.sh_degree)
-        dp = _ceil16(11 + 3 * c)
-        d = 11 + 3 * c  # values per row; base rows are padded to dp, delta rows are not (fewer bytes per frame)
-        base = torch.cat([_rows(avatar.neutral, dp, torch.float32), _rows(avatar.mouth, dp, torch.float32)])
-        deltas = _rows(avatar.deltas, d, store).transpose(0, 1)  # [N, K, D]
-        stored = (deltas != 0).any(-1)  # [N, K]: pairs that change anything
-        if bool(stored.all()):
-            vals, col = deltas.reshape(-1), torch.arange(k).repeat(n)
-        else:
-            vals, col = deltas[stored].reshape(-1), stored.nonzero()[:, 1]
-        vals = torch.cat([vals, torch.zeros(dp - d, dtype=store)])  # full-width loads of the last row stay inside
-        counts = torch.cat([stored.sum(1), torch.zeros(m, dtype=torch.long)])
-        row_ptr = torch.cat([torch.zeros(1, dtype=torch.long), counts.cumsum(0)])
-        if int(row_ptr[-1]) >= 2**31 or k > 65536:
-            raise ValueError("the native backend stores at most 2^31 blendshape pairs and 65536 blendshapes")
-        p = 9 * (j - 1)
-        if avatar.pose_correctives is not None and p > 0:
-            pc = avatar.pose_correctives.to(torch.float32).permute(1, 2, 0)  # [N, 3, P]
-            pc = torch.nn.functional.pad(pc, (0, _ceil16(p) - p)).to(store).contiguous()
-        else:
-            pc = torch.zeros(0, dtype=store)
-        eyelid = (avatar.eyelid_offsets.to(torch.float32).permute(1, 0, 2).contiguous()
-                  if avatar.eyelid_offsets is not None else torch.zeros(0))
+        deltas = avatar.sparse_deltas(store)
+        pc = (packed.pack_correctives(avatar.pose_correctives, store) if avatar.pose_correctives is not None and j > 1
+              else torch.zeros(0, dtype=store))
+        eyelid = (packed.pack_eyelids(avatar.eyelid_offsets) if avatar.eyelid_offsets is not None
+                  else torch.zeros(0))
         mouth_joint = torch.tensor([avatar.joint_index(nm) for nm in avatar.mouth_joint_names])[avatar.mouth_group]
-        lbs = torch.cat([avatar.lbs_weights.to(torch.float32), torch.nn.functional.one_hot(mouth_joint, j).float()])
+        # [J, N + M]: consecutive Gaussians load as one vector; the mouth follows its joint rigidly.
+        lbs = torch.zeros(j, n + avatar.num_mouth)
+        lbs[:, :n] = avatar.lbs_weights.T
+        lbs[mouth_joint, torch.arange(n, n + avatar.num_mouth)] = 1.0
 
         def bits(t: Tensor) -> np.ndarray:  # fp16 crosses as its uint16 bits
             return t.contiguous().view(torch.int16).numpy().view(np.uint16) if t.dtype == torch.float16 else _np(t)
 
+        g, sh = deltas.geometry, deltas.color
         self._arrays = dict(
-            base=_np(base),
-            row_ptr=_np(row_ptr, torch.int32),
-            col=col.to(torch.int32).numpy().astype(np.uint16),
-            vals=bits(vals),
+            base=_np(packed.pack_rows(avatar.neutral, avatar.mouth)),
+            geo_ptr=g.row_ptr.numpy(), geo_col=g.col.numpy(), geo_vals=bits(g.values),
+            sh_ptr=sh.row_ptr.numpy(), sh_col=sh.col.numpy(), sh_vals=bits(sh.values),
             pc=bits(pc),
             eyelid=_np(eyelid),
-            lbs=np.ascontiguousarray(_np(lbs).T),  # [J, N + M]: consecutive Gaussians load as one vector
+            lbs=lbs.numpy(),
             joints=_np(avatar.joint_positions),
             parents=np.asarray(avatar.joint_parents, dtype=np.int32),
         )
         self.handle = _native.NativeAvatar(**self._arrays, n_face=n, K=k, C=c)
         self.avatar = avatar
+        streamed = ("base", "geo_ptr", "geo_col", "geo_vals", "sh_ptr", "sh_col", "sh_vals", "pc")
         self.stats = PackStats(
-            pairs_stored=int(row_ptr[-1]), pairs_total=n * k,
-            blend_bytes=int(sum(self._arrays[key].nbytes for key in ("base", "vals", "pc", "col", "row_ptr"))),
+            pairs_stored=g.count + sh.count, pairs_total=2 * n * k,
+            blend_bytes=int(sum(self._arrays[key].nbytes for key in streamed)),
             precision=precision,
         )
 
     @property
     def nbytes(self) -> int:
-        """Host bytes of the packed arrays the pipeline reads (the handle holds them, not copies)."""
-        return sum(a.nbytes for a in self._arrays.values())
+        """Host bytes of the packed arrays this object made: arrays that are the avatar's own memory (an avatar
+        read from a schema-2 bundle, whose file already is the packed layout) are not counted again."""
+        spans = [(t.untyped_storage().data_ptr(), t.untyped_storage().nbytes()) for t in _avatar_tensors(self.avatar)
+                 if t.device.type == "cpu"]
+
+        def owned(a: np.ndarray) -> bool:
+            p = a.__array_interface__["data"][0]
+            return a.nbytes > 0 and not any(start <= p < start + size for start, size in spans)
+
+        return sum(a.nbytes for a in self._arrays.values() if owned(a))
 
     def render(
         self,
@@ -332,6 +322,12 @@ class NativeAvatar:
                                  cameras.width, cameras.height, self.avatar.raster_mode == "antialiased",
                                  _background(background, b), rgb, alpha, depth, simd_choice(simd), threads)
         return torch.from_numpy(rgb), torch.from_numpy(alpha), torch.from_numpy(depth), dict(timings)
+
+
+def _avatar_tensors(avatar: Avatar) -> list[Tensor]:
+    groups = [avatar.neutral, avatar.mouth, avatar.deltas]
+    out = [t for g in groups for t in g.tensors().values()]
+    return out + [t for t in (avatar.lbs_weights, avatar.pose_correctives, avatar.eyelid_offsets) if t is not None]
 
 
 def bandwidth_probe(nbytes: int, threads: int = 0) -> dict:

@@ -168,7 +168,7 @@ def bench_render(
     if dev is not None:
         report["device"] = gsplat_backend.device_name()
         report["machine"].update(gpu=report["device"], cuda=torch.version.cuda, gsplat=_gsplat_version())
-        report["blend"] = {"bytes": dev.deltas.numel() * dev.deltas.element_size()}  # the blendshape matrix
+        report["blend"] = {"bytes": dev.nbytes}  # the sparse blendshapes on the device
     if renderer.backend != "reference" and reference_frames > 0:
         ref = _time_frames(AvatarRenderer(avatar, "reference"), cams, reference_frames, 1, g)
         ref_fps = 1000.0 / ref["ms"]["total"]

@@ -112,6 +112,27 @@ def cmd_bundle_validate(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_bundle_convert(args: argparse.Namespace) -> int:
+    from ..bundle import read_bundle_and_manifest, write_bundle
+
+    avatar, old = read_bundle_and_manifest(args.file)  # fully verified
+    precision = args.precision or old["precision"]
+    manifest = write_bundle(avatar, args.out, precision=precision, schema_version=args.schema)
+    log.info("wrote %s", args.out)
+    _emit({"path": str(args.out), "from_schema": _stored_schema(args.file),
+           "schema_version": manifest["schema_version"], "precision": precision,
+           "bytes": Path(args.out).stat().st_size, "from_bytes": Path(args.file).stat().st_size,
+           "digest": manifest["digest"]})
+    return 0
+
+
+def _stored_schema(path: Path) -> int:
+    """The schema version a bundle file was written with (its manifest as stored, before upgrading)."""
+    from ..bundle import stored_schema_version
+
+    return stored_schema_version(path)
+
+
 def cmd_render(args: argparse.Namespace) -> int:
     from .offline import render_bundle
 
@@ -349,6 +370,13 @@ def build_parser() -> argparse.ArgumentParser:
     s = bsub.add_parser("validate", help="fully check a bundle (digest, shapes, finite values); exit 0 if valid")
     s.add_argument("file", type=Path)
     s.set_defaults(fn=cmd_bundle_validate)
+    s = bsub.add_parser("convert", help="rewrite a bundle (e.g. a schema-1 file) as the current schema: sparse "
+                                        "blendshapes in the renderer's layout, loaded without a repack")
+    s.add_argument("file", type=Path, help="the bundle to read (fully verified first)")
+    s.add_argument("--out", required=True, type=Path)
+    s.add_argument("--precision", choices=("fp32", "fp16"), default=None, help="default: the input's")
+    s.add_argument("--schema", type=int, choices=(1, 2), default=2, help="schema version to write (default 2)")
+    s.set_defaults(fn=cmd_bundle_convert)
 
     fm = sub.add_parser("facemodel", help="build, import and inspect face models")
     fsub = fm.add_subparsers(dest="facemodel_command", required=True)

@@ -95,7 +95,7 @@ class TrainableAvatar(nn.Module):
             self.register_parameter(prefix + "opacity_logits", nn.Parameter(g.opacity_logits.clone()))
             self.register_parameter(prefix + "sh_dc", nn.Parameter(g.sh[:, :1].clone()))
             self.register_parameter(prefix + "sh_rest", nn.Parameter(g.sh[:, 1:].clone()))
-        deltas = avatar.deltas
+        deltas = avatar.dense_deltas()
         nonzero = torch.zeros(k, n, dtype=torch.bool)
         for prop in PROPS:
             t = getattr(deltas, prop)
