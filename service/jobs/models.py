@@ -1,0 +1,267 @@
+"""The job database: its tables (SQLAlchemy 2 typed ORM), the values the store hands out, and the engine factory.
+
+Two tables. ``jobs`` is the single source of truth of the training queue: a job's state, spec, lease, attempts,
+cancel flag, checkpoint, latest progress, error and result. ``job_events`` is its append-only history (state
+changes, progress reports, previews, log lines), replayed in id order by the event stream.
+
+The schema is owned by the Alembic migrations in ``migrations/versions``; these classes must match them (a test
+runs Alembic's autogenerate comparison). Change both together: edit a model, then add a migration.
+
+Timestamps are timezone-aware UTC everywhere: PostgreSQL stores ``timestamptz``; SQLite stores the UTC wall time
+as text, and :class:`UTCDateTime` gives it back aware.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from sqlalchemy import (
+    JSON,
+    BigInteger,
+    Boolean,
+    CheckConstraint,
+    DateTime,
+    Engine,
+    Float,
+    ForeignKey,
+    Index,
+    Integer,
+    MetaData,
+    String,
+    Text,
+    create_engine,
+    event,
+    func,
+)
+from sqlalchemy.engine import make_url
+from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
+from sqlalchemy.types import TypeDecorator
+
+BUSY_TIMEOUT_MS = 10_000  # SQLite: how long a connection waits for another's write lock before "database is locked"
+
+
+class JobState(enum.StrEnum):
+    QUEUED = "queued"
+    RUNNING = "running"
+    SUCCEEDED = "succeeded"
+    FAILED = "failed"
+    CANCELLED = "cancelled"
+
+
+TERMINAL = frozenset({JobState.SUCCEEDED, JobState.FAILED, JobState.CANCELLED})
+
+
+class EventKind(enum.StrEnum):
+    PROGRESS = "progress"
+    STATE = "state"
+    PREVIEW = "preview"
+    LOG = "log"
+
+
+class UTCDateTime(TypeDecorator[datetime]):
+    """A timezone-aware UTC datetime on every backend. Binding a naive datetime is an error (it has no zone)."""
+
+    impl = DateTime(timezone=True)
+    cache_ok = True
+
+    def process_bind_param(self, value: datetime | None, dialect) -> datetime | None:
+        if value is None:
+            return None
+        if value.tzinfo is None:
+            raise ValueError("naive datetime: the job store keeps timezone-aware UTC times only")
+        value = value.astimezone(UTC)
+        return value.replace(tzinfo=None) if dialect.name == "sqlite" else value
+
+    def process_result_value(self, value: datetime | None, dialect) -> datetime | None:
+        if value is None:
+            return None
+        return value.replace(tzinfo=UTC) if value.tzinfo is None else value.astimezone(UTC)
+
+
+_NAMING = {  # stable constraint names, so migrations can refer to them on every backend
+    "ix": "ix_%(table_name)s_%(column_0_N_name)s",
+    "uq": "uq_%(table_name)s_%(column_0_N_name)s",
+    "ck": "ck_%(table_name)s_%(constraint_name)s",
+    "fk": "fk_%(table_name)s_%(column_0_name)s_%(referred_table_name)s",
+    "pk": "pk_%(table_name)s",
+}
+
+
+class Base(DeclarativeBase):
+    metadata = MetaData(naming_convention=_NAMING)
+    type_annotation_map = {datetime: UTCDateTime(), dict[str, Any]: JSON()}
+
+
+def _states() -> str:
+    return ", ".join(f"'{s.value}'" for s in JobState)
+
+
+class JobRecord(Base):
+    """One training job (a row of ``jobs``)."""
+
+    __tablename__ = "jobs"
+
+    id: Mapped[str] = mapped_column(String(64), primary_key=True)
+    tenant: Mapped[str | None] = mapped_column(String(128))
+    state: Mapped[str] = mapped_column(String(16))
+    spec: Mapped[dict[str, Any]]
+    idempotency_key: Mapped[str | None] = mapped_column(String(255))
+    request_hash: Mapped[str | None] = mapped_column(String(64))  # SHA-256 of the canonical spec JSON
+    attempts: Mapped[int] = mapped_column(Integer, default=0)
+    max_attempts: Mapped[int] = mapped_column(Integer)
+    lease_owner: Mapped[str | None] = mapped_column(String(255))
+    lease_expires_at: Mapped[datetime | None]
+    heartbeat_at: Mapped[datetime | None]
+    cancel_requested: Mapped[bool] = mapped_column(Boolean, default=False)
+    checkpoint_path: Mapped[str | None] = mapped_column(Text)
+    # the latest progress report
+    iteration: Mapped[int | None] = mapped_column(Integer)
+    total_iterations: Mapped[int | None] = mapped_column(Integer)
+    fraction: Mapped[float | None] = mapped_column(Float)
+    eta_seconds: Mapped[float | None] = mapped_column(Float)
+    loss: Mapped[float | None] = mapped_column(Float)
+    psnr: Mapped[float | None] = mapped_column(Float)
+    gaussians: Mapped[int | None] = mapped_column(Integer)
+    error: Mapped[str | None] = mapped_column(Text)
+    result: Mapped[dict[str, Any] | None]
+    created_at: Mapped[datetime]
+    started_at: Mapped[datetime | None]
+    finished_at: Mapped[datetime | None]
+    updated_at: Mapped[datetime]
+
+    __table_args__ = (
+        CheckConstraint(f"state IN ({_states()})", name="state"),
+        CheckConstraint("attempts >= 0 AND max_attempts >= 1", name="attempts"),
+        Index("ix_jobs_state_created_at", "state", "created_at"),  # claiming (oldest queued), list by state
+        Index("ix_jobs_created_at_id", "created_at", "id"),  # list, newest first (keyset)
+        # one job per (tenant, key); NULL tenants share one scope (a plain unique constraint would let NULLs repeat)
+        Index("uq_jobs_tenant_idempotency_key", func.coalesce(tenant, ""), idempotency_key, unique=True),
+    )
+
+
+class JobEventRecord(Base):
+    """One entry of a job's history (a row of ``job_events``); ids increase, so ``id`` is the replay cursor."""
+
+    __tablename__ = "job_events"
+
+    id: Mapped[int] = mapped_column(BigInteger().with_variant(Integer, "sqlite"), primary_key=True,
+                                    autoincrement=True)
+    job_id: Mapped[str] = mapped_column(String(64), ForeignKey("jobs.id", ondelete="CASCADE"))
+    kind: Mapped[str] = mapped_column(String(16))
+    data: Mapped[dict[str, Any]]
+    created_at: Mapped[datetime]
+
+    __table_args__ = (
+        CheckConstraint("kind IN ('progress', 'state', 'preview', 'log')", name="kind"),
+        Index("ix_job_events_job_id_id", "job_id", "id"),
+    )
+
+
+# ---- the values the store hands out (plain snapshots: no session, safe to pass between threads) ----
+
+@dataclasses.dataclass(frozen=True)
+class Job:
+    """A job as the store last saw it. ``fraction`` (0..1), ``iteration``, ``eta_seconds``, ``loss``, ``psnr`` and
+    ``gaussians`` are the latest progress report (None before the first)."""
+
+    id: str
+    tenant: str | None
+    state: JobState
+    spec: dict[str, Any]
+    idempotency_key: str | None
+    attempts: int
+    max_attempts: int
+    lease_owner: str | None
+    lease_expires_at: datetime | None
+    heartbeat_at: datetime | None
+    cancel_requested: bool
+    checkpoint_path: str | None
+    iteration: int | None
+    total_iterations: int | None
+    fraction: float | None
+    eta_seconds: float | None
+    loss: float | None
+    psnr: float | None
+    gaussians: int | None
+    error: str | None
+    result: dict[str, Any] | None
+    created_at: datetime
+    started_at: datetime | None
+    finished_at: datetime | None
+    updated_at: datetime
+
+    @property
+    def finished(self) -> bool:
+        return self.state in TERMINAL
+
+    @classmethod
+    def of(cls, record: JobRecord) -> Job:
+        values = {f.name: getattr(record, f.name) for f in dataclasses.fields(cls)}
+        values["state"] = JobState(record.state)
+        return cls(**values)
+
+
+@dataclasses.dataclass(frozen=True)
+class JobEvent:
+    id: int
+    job_id: str
+    kind: EventKind
+    data: dict[str, Any]
+    created_at: datetime
+
+    @classmethod
+    def of(cls, record: JobEventRecord) -> JobEvent:
+        return cls(record.id, record.job_id, EventKind(record.kind), record.data, record.created_at)
+
+
+@dataclasses.dataclass(frozen=True)
+class HeartbeatReply:
+    """``owned``: the caller still holds the job's lease (False: stop at once, someone else may run it now).
+    ``cancel_requested``: end the job as cancelled at the next iteration boundary."""
+
+    owned: bool
+    cancel_requested: bool
+
+
+# ---- connecting ----
+
+def default_url(data_dir: str | Path) -> str:
+    """The embedded default: a SQLite file ``<data_dir>/jobs.db`` (one machine only)."""
+    return f"sqlite:///{Path(data_dir).resolve() / 'jobs.db'}"
+
+
+def make_engine(url: str, *, busy_timeout_ms: int = BUSY_TIMEOUT_MS) -> Engine:
+    """An engine for a job database URL: ``sqlite:///path`` or ``postgresql+psycopg://...``.
+
+    SQLite connections get WAL journaling, a busy timeout, foreign keys (for the events' cascade) and explicit
+    transaction control: a transaction starts with ``BEGIN`` or, on an engine made with
+    ``execution_options(sqlite_begin="IMMEDIATE")``, with ``BEGIN IMMEDIATE`` (takes the write lock at once, so
+    read-then-write transactions never fail on a lock upgrade). The folder of a SQLite file is created."""
+    parsed = make_url(url)
+    if parsed.get_backend_name() != "sqlite":
+        return create_engine(parsed, pool_pre_ping=True)
+    if parsed.database and parsed.database != ":memory:":
+        Path(parsed.database).parent.mkdir(parents=True, exist_ok=True)
+    engine = create_engine(parsed, connect_args={"check_same_thread": False})
+
+    @event.listens_for(engine, "connect")
+    def _configure(dbapi_connection, _record) -> None:
+        dbapi_connection.isolation_level = None  # no implicit BEGIN from the driver: the "begin" hook below owns it
+        cursor = dbapi_connection.cursor()
+        cursor.execute("PRAGMA journal_mode=WAL")
+        cursor.execute(f"PRAGMA busy_timeout={int(busy_timeout_ms)}")
+        cursor.execute("PRAGMA foreign_keys=ON")
+        cursor.close()
+
+    @event.listens_for(engine, "begin")
+    def _begin(connection) -> None:
+        mode = connection.get_execution_options().get("sqlite_begin", "DEFERRED")
+        if mode not in ("DEFERRED", "IMMEDIATE", "EXCLUSIVE"):
+            raise ValueError(f"sqlite_begin: {mode!r} is not a SQLite transaction mode")
+        connection.exec_driver_sql(f"BEGIN {mode}")
+
+    return engine
