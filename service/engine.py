@@ -4,8 +4,22 @@
   wins: a pose that arrives while an older one waits replaces it (the older one is counted as dropped). At most
   ``max_in_flight`` frames are rendered-or-sent and not yet acknowledged; a reader that stops acking stops the
   rendering for its session, so the server holds at most one pending pose and ``max_in_flight`` frames for it.
+- Frame indices: a stream's frames are numbered by the client from 1 up, strictly increasing (0 is "unset"); a
+  frame whose index is 0 or not above the last accepted one is refused (INVALID_ARGUMENT naming ``index``, the
+  stream goes on), so cumulative acks always mean "every frame up to here". An ack must name an index the server
+  has answered (a frame, or an error for it); others are refused (``ack.index``) and acknowledge nothing.
 - One scheduler task hands ready sessions to a single render thread (the native renderer uses every core for one
   call); sessions of the same avatar and output size that are ready together are rendered as one batched call.
+- Every frame is validated (:mod:`service.params`) before it joins a batch. Per-frame work is bounded: a frame
+  whose estimated (Gaussian, pixel) pairs pass ``max_frame_splat_pixels`` is refused, and a batch holds at most
+  that much estimated work, so the render thread is never held by one call for much longer than one budget's
+  worth (a heavy frame renders alone).
+- Fairness: each session is charged the render time its frames take (its share of a batch's time, by estimate);
+  the ready session charged least goes first (an idle session counts from "now", so it gets no credit for having
+  been idle). A session with slow frames gets its share of the render thread, not all of it.
+- Isolation: when a batched call fails, its frames are rendered again one by one, so the failure is reported to
+  the session that caused it (an error naming its frame; a failure that is not a typed error is reported as
+  INVALID_ARGUMENT on ``frame``, and logged) and the others get their frames.
 - Draining (SIGTERM): new streams are refused, poses already received are rendered and sent, then every stream
   ends with an UNAVAILABLE status.
 
@@ -19,6 +33,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import math
 import os
 import time
 import uuid
@@ -33,7 +48,7 @@ from blendsplat.v1 import render_pb2 as pb
 from render_core.avatar import Avatar
 from render_core.camera import Cameras
 from render_core.deform import Frame
-from render_core.errors import CodecError
+from render_core.errors import BlendsplatError, CodecError
 from render_core.media.codecs import Encoder, make_encoder
 from render_core.media.pixels import to_rgba8
 
@@ -58,20 +73,28 @@ class Job:
     background: torch.Tensor  # [3]
     index: int
     client_time_us: int
+    cost: float = 0.0  # estimated (Gaussian, pixel) pairs (params.frame_cost)
     received: float = field(default_factory=time.perf_counter)
     started: float = 0.0
 
     @classmethod
-    def build(cls, avatar: Avatar, msg: pb.FrameParams, order: list[str], out: params.Output,
-              camera: Cameras | None = None, background: torch.Tensor | None = None) -> Job:
+    def build(cls, avatar: Avatar, msg: pb.FrameParams, order: list[str], out: params.Output, budget: float,
+              camera: Cameras | None = None, background: torch.Tensor | None = None,
+              cost: float | None = None) -> Job:
         """The job of one FrameParams message, validated (typed errors naming the field): its camera, else
-        ``camera``, else the avatar's default at the output size; its background, else ``background``, else
-        black; ``order`` maps positional coefficients to names."""
+        ``camera`` (whose estimated cost is ``cost``), else the avatar's default at the output size; its
+        background, else ``background``, else black; ``order`` maps positional coefficients to names. A frame
+        whose estimated cost passes ``budget`` is refused (RESOURCE_EXHAUSTED naming ``camera`` or ``width``)."""
+        own_camera = msg.HasField("camera")
+        frame = params.frame(avatar, msg, order)
+        cams = params.camera(avatar, msg.camera if own_camera else None, out, camera)
+        if own_camera or cost is None:
+            cost = params.check_cost(params.frame_cost(avatar, cams), budget, out,
+                                     "camera" if own_camera else "width")
         return cls(
-            frame=params.frame(avatar, msg, order),
-            camera=params.camera(avatar, msg.camera if msg.HasField("camera") else None, out, camera),
+            frame=frame, camera=cams,
             background=params.background(msg.background if msg.HasField("background") else None, background),
-            index=msg.index, client_time_us=msg.client_time_us,
+            index=msg.index, client_time_us=msg.client_time_us, cost=cost,
         )
 
 
@@ -95,6 +118,8 @@ class Session:
         self.max_in_flight = config.max_in_flight or s.max_in_flight
         self.order = params.expression_order(avatar, list(config.expression_names))
         self.camera = params.camera(avatar, config.camera if config.HasField("camera") else None, self.out)
+        self.cost = params.check_cost(params.frame_cost(avatar, self.camera), s.max_frame_splat_pixels, self.out,
+                                      "camera" if config.HasField("camera") else "width")
         self.background = params.background(config.background if config.HasField("background") else None)
         try:
             self.encoder: Encoder = make_encoder(self.out.codec, self.out.width, self.out.height, config.quality,
@@ -105,6 +130,9 @@ class Session:
             raise CodecError(e.detail, field="fps_hint") from None  # the name the client sent it under
         self.pending: Job | None = None
         self.unacked: deque[int] = deque()  # indices rendering or sent, not yet acknowledged
+        self.last_index = 0  # the index of the newest frame accepted (frames must go above it)
+        self.answered = 0  # the highest index answered (a frame sent, or an error for it): acks go up to it
+        self.vtime = 0.0  # render seconds charged (fair share: the least charged ready session goes first)
         self.rendering = 0
         self.sent = self.dropped = 0
         self.input_done = False
@@ -129,9 +157,7 @@ class Session:
             if kind == "frame":
                 self._submit(request.frame)
             elif kind == "ack":
-                while self.unacked and self.unacked[0] <= request.ack.index:
-                    self.unacked.popleft()
-                self.engine.wake()
+                self._ack(request.ack.index)
             elif kind == "open":
                 raise InvalidArgument("the session is already open; send frame or ack messages", field="open")
             else:
@@ -143,10 +169,28 @@ class Session:
     def _submit(self, msg: pb.FrameParams) -> None:
         if self.engine.frames_closed:
             raise Unavailable("the server is shutting down; no new frames are taken")
-        job = Job.build(self.entry.avatar, msg, self.order, self.out, self.camera, self.background)
+        if msg.index == 0:
+            raise InvalidArgument("frame indices start at 1 (0 is unset) and increase with every frame",
+                                  field="index")
+        if msg.index <= self.last_index:
+            raise InvalidArgument(f"{msg.index} is not above the previous frame's index {self.last_index}; frame "
+                                  "indices must increase with every frame", field="index")
+        job = Job.build(self.entry.avatar, msg, self.order, self.out, self.engine.settings.max_frame_splat_pixels,
+                        self.camera, self.background, self.cost)
+        self.last_index = msg.index
         if self.pending is not None:
             self._drop()
         self.pending = job
+        self.engine.wake()
+
+    def _ack(self, index: int) -> None:
+        """Acknowledge every frame up to and including ``index``, which must have been answered."""
+        if not 0 < index <= self.answered:
+            newest = f"the newest answered is {self.answered}" if self.answered else "none has been answered yet"
+            raise InvalidArgument(f"acknowledges frame {index}, which this stream has not sent ({newest}); nothing "
+                                  "was acknowledged", field="ack.index")
+        while self.unacked and self.unacked[0] <= index:
+            self.unacked.popleft()
         self.engine.wake()
 
     def end_input(self) -> None:
@@ -169,9 +213,9 @@ class Session:
         self.rendering -= 1
         if self.closed:
             return
+        self.answered = max(self.answered, job.index)
         if isinstance(result, BaseException):
             self.unacked.remove(job.index)
-            log.exception("render failed for session %s", self.id, exc_info=result)
             self.error(to_status(result, job.index))
         else:
             self.sent += 1
@@ -236,6 +280,7 @@ class Engine:
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="render")
         self._wake = asyncio.Event()
         self._busy = False
+        self._vclock = 0.0  # the render time charged to the session served last (fair share's "now")
         self._scheduler: asyncio.Task | None = None
 
     # --------------------------------------------------------------------------------------------- lifecycle
@@ -265,7 +310,7 @@ class Engine:
             avatar = synth_avatar(gaussians=256, blendshapes=4)
             entry = Loaded("warm-up", avatar, AvatarRenderer(avatar, self.settings.backend), "", 0, 0)
         out = params.output(size, size, pb.CODEC_JPEG, 0, max(size, self.settings.max_size))
-        job = Job.build(entry.avatar, pb.FrameParams(), list(entry.avatar.expression_names), out)
+        job = Job.build(entry.avatar, pb.FrameParams(), list(entry.avatar.expression_names), out, math.inf)
         encoder = make_encoder(out.codec, out.width, out.height)
         await asyncio.get_running_loop().run_in_executor(self._pool, _render, entry, [job], [encoder])
         self.warmed_up = True
@@ -307,6 +352,7 @@ class Engine:
         if len(self.sessions) >= self.settings.max_sessions:  # others opened while the avatar loaded
             self.cache.release(entry)
             raise ResourceExhausted(f"this replica serves at most {self.settings.max_sessions} streams")
+        session.vtime = self._vclock  # counts from now: no credit for time before it existed
         self.sessions[session.id] = session
         self.metrics.sessions.labels(transport).inc()
         self.metrics.sessions_total.labels(transport).inc()
@@ -334,11 +380,11 @@ class Engine:
             out = params.output(request.width, request.height, request.codec, request.quality,
                                 self.settings.max_size)
             job = Job.build(avatar, request.frame, params.expression_order(avatar, list(request.expression_names)),
-                            out)
+                            out, self.settings.max_frame_splat_pixels)
             encoder = make_encoder(out.codec, out.width, out.height, request.quality)
             try:
-                (result,) = await asyncio.get_running_loop().run_in_executor(self._pool, _render, entry, [job],
-                                                                             [encoder])
+                (result,), _ = await asyncio.get_running_loop().run_in_executor(self._pool, _render_isolated, entry,
+                                                                                [job], [encoder])
             finally:
                 encoder.close()
         finally:
@@ -354,14 +400,27 @@ class Engine:
         self._wake.set()
 
     def _next_batch(self) -> list[Session]:
+        """The ready session charged the least render time (fair share; ties: the pose waiting longest), with the
+        other ready sessions of its avatar and size, least charged first, while the batch's estimated work stays
+        within one frame's budget and ``max_batch``."""
         ready = [s for s in self.sessions.values() if s.ready]
         if not ready:
             return []
-        ready.sort(key=lambda s: s.pending.received)
+        for s in ready:  # a session that was idle has no credit for that time: it counts from now
+            s.vtime = max(s.vtime, self._vclock)
+        ready.sort(key=lambda s: (s.vtime, s.pending.received))
         first = ready[0]
-        same = [s for s in ready if s.entry is first.entry and (s.out.width, s.out.height) == (
-            first.out.width, first.out.height)]
-        return same[: self.settings.max_batch]
+        self._vclock = first.vtime
+        batch, work = [first], first.pending.cost
+        budget = self.settings.max_frame_splat_pixels
+        for s in ready[1:]:
+            if len(batch) >= self.settings.max_batch:
+                break
+            if (s.entry is first.entry and (s.out.width, s.out.height) == (first.out.width, first.out.height)
+                    and work + s.pending.cost <= budget):
+                batch.append(s)
+                work += s.pending.cost
+        return batch
 
     async def _schedule(self) -> None:
         loop = asyncio.get_running_loop()
@@ -371,12 +430,14 @@ class Engine:
             while batch := self._next_batch():
                 jobs = [s.take() for s in batch]
                 try:
-                    results = await loop.run_in_executor(self._pool, _render, batch[0].entry, jobs,
-                                                         [s.encoder for s in batch])
-                except Exception as e:  # noqa: BLE001 - the batch failed as a whole
-                    results = [e] * len(jobs)
+                    results, seconds = await loop.run_in_executor(self._pool, _render_isolated, batch[0].entry, jobs,
+                                                                  [s.encoder for s in batch])
+                except Exception as e:  # noqa: BLE001 - cannot happen (_render_isolated returns errors); defensive
+                    results, seconds = [_attributed(e)] * len(jobs), 0.0
                 self._observe(jobs, results, batch[0].out.codec)
+                total = sum(j.cost for j in jobs)
                 for session, job, result in zip(batch, jobs, results, strict=True):
+                    session.vtime += seconds * (job.cost / total if total > 0 else 1 / len(jobs))
                     session.deliver(job, result)
 
     def _observe(self, jobs: list[Job], results: list, codec: str) -> None:
@@ -455,6 +516,39 @@ class Engine:
             except (ServiceError, Exception) as e:  # noqa: BLE001 - one broken file must not hide the others
                 log.warning("avatar %s unreadable: %s", avatar_id, e)
         return out
+
+
+def _attributed(exc: BaseException) -> BaseException:
+    """The error a session gets for its own frame: typed errors as they are (a ``MemoryError`` is
+    RESOURCE_EXHAUSTED); anything else, a failure of this frame alone once the batch was split, is logged and
+    reported as INVALID_ARGUMENT on ``frame`` (its inputs passed validation, yet this frame cannot be rendered)."""
+    if isinstance(exc, ServiceError | BlendsplatError | MemoryError):
+        return exc
+    log.error("a frame failed to render: %s: %s", type(exc).__name__, exc, exc_info=exc)
+    return InvalidArgument(f"this frame could not be rendered ({type(exc).__name__}); the stream goes on",
+                           field="frame")
+
+
+def _render_isolated(entry: Loaded, jobs: list[Job], encoders: list[Encoder]
+                     ) -> tuple[list[Rendered | BaseException], float]:
+    """:func:`_render`, and when the batched call fails, each job again on its own, so a failure is reported to the
+    job that caused it only (runs on the render thread). Returns the results and the seconds spent."""
+    start = time.perf_counter()
+    try:
+        results = _render(entry, jobs, encoders)
+    except Exception as e:  # noqa: BLE001 - attributed below
+        if len(jobs) == 1:
+            results = [e]
+        else:
+            log.warning("a batch of %d frames failed (%s); rendering them one by one", len(jobs), type(e).__name__)
+            results = []
+            for job, encoder in zip(jobs, encoders, strict=True):
+                try:
+                    results += _render(entry, [job], [encoder])
+                except Exception as e1:  # noqa: BLE001 - this job's own failure
+                    results.append(e1)
+    results = [_attributed(r) if isinstance(r, BaseException) else r for r in results]
+    return results, time.perf_counter() - start
 
 
 def _render(entry: Loaded, jobs: list[Job], encoders: list[Encoder]) -> list[Rendered | BaseException]:

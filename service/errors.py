@@ -7,6 +7,29 @@ import grpc
 from blendsplat.v1 import render_pb2 as pb
 from render_core.errors import BlendsplatError
 
+# Every error text on the wire is bounded: gRPC carries the details of a failed call in its trailing metadata (8 KiB
+# by default; more and the client sees RESOURCE_EXHAUSTED instead of the real status), and an HTTP error body should
+# not grow with what a client sent either. Lists of names say a few and a count (:func:`some`).
+MAX_MESSAGE_CHARS = 1000
+MAX_FIELD_CHARS = 120
+SOME_NAMES = 5
+
+
+def some(names, limit: int = SOME_NAMES) -> str:
+    """A bounded listing: ``'a', 'b', 'c' and 9997 more`` (every name quoted and cut to 40 characters)."""
+    names = list(names)
+    shown = ", ".join(repr(n if len(n) <= 40 else n[:40] + "...") if isinstance(n, str) else repr(n)
+                      for n in names[:limit])
+    return shown + (f" and {len(names) - limit} more" if len(names) > limit else "")
+
+
+def bounded(text: str, limit: int = MAX_MESSAGE_CHARS) -> str:
+    """``text`` cut to ``limit`` characters, saying how much was left out."""
+    if len(text) <= limit:
+        return text
+    keep = max(0, limit - 40)  # room for the note
+    return f"{text[:keep]}... ({len(text) - keep} more characters)"
+
 
 class ServiceError(Exception):
     """An error a client caused or must handle; ``code`` is the wire status (a ``blendsplat.v1.Code`` value)."""
@@ -48,10 +71,15 @@ _HTTP = {
 def to_status(exc: BaseException, frame_index: int = 0) -> pb.Status:
     """Any exception as a wire status: typed errors keep their code and field (the message then leaves the field
     out); others are INTERNAL. render_core's typed errors (:class:`~render_core.errors.BlendsplatError`: a frame,
-    camera, codec setting, bundle or option the client sent) are INVALID_ARGUMENT (HTTP 422)."""
+    camera, codec setting, bundle or option the client sent) are INVALID_ARGUMENT (HTTP 422); a MemoryError (an
+    allocation refused) is RESOURCE_EXHAUSTED. Message and field are bounded (:func:`bounded`)."""
     if isinstance(exc, ServiceError | BlendsplatError):
         code = exc.code if isinstance(exc, ServiceError) else pb.INVALID_ARGUMENT  # render_core: the client's input
-        return pb.Status(code=code, message=exc.detail, field=exc.field or "", frame_index=frame_index)
+        return pb.Status(code=code, message=bounded(exc.detail), field=bounded(exc.field or "", MAX_FIELD_CHARS),
+                         frame_index=frame_index)
+    if isinstance(exc, MemoryError):
+        return pb.Status(code=pb.RESOURCE_EXHAUSTED, message="not enough memory for this request",
+                         frame_index=frame_index)
     return pb.Status(code=pb.INTERNAL, message=f"internal error ({type(exc).__name__})", frame_index=frame_index)
 
 

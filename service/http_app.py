@@ -1,6 +1,16 @@
 """The HTTP transport (FastAPI): REST for avatars and single frames, the WebSocket stream, health, metrics and the
-/demo page. A thin adapter over the :class:`~service.engine.Engine`: JSON bodies are protobuf's canonical JSON
-mapping of the ``blendsplat.v1`` messages, and errors map to HTTP statuses in :mod:`service.errors`.
+/demo and /jobs pages. A thin adapter over the :class:`~service.engine.Engine`: JSON bodies are protobuf's
+canonical JSON mapping of the ``blendsplat.v1`` messages, and errors map to HTTP statuses in :mod:`service.errors`.
+
+The training jobs' routes (uploads, jobs, artefacts, deletion) are :mod:`service.jobs_api`'s, mounted here when the
+process has a :class:`~service.jobs_api.Training` (``serve`` and ``up`` always do). Request validation errors
+(pydantic) answer the same error shape as every other error: 422 naming the field.
+
+Every request passes one guard (:class:`RequestGuard`): a request body that sends nothing for
+``body_timeout_seconds`` is refused (408), one still arriving when the server drains gets 503, both closing the
+connection; and an exception nothing mapped answers a typed JSON 500 carrying an error id that the log line has
+too (never plain text, never a traceback). Bodies are bounded before they are read: a declared length over the
+route's limit answers 413 at once and closes the connection.
 """
 
 from __future__ import annotations
@@ -9,20 +19,26 @@ import asyncio
 import contextlib
 import json
 import logging
+import uuid
 from pathlib import Path
 from typing import Any
 
 from fastapi import APIRouter, FastAPI, Request, WebSocket, WebSocketDisconnect
+from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, JSONResponse, Response
 from google.protobuf import json_format
 from google.protobuf.message import DecodeError
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
+from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from blendsplat.v1 import render_pb2 as pb
 from render_core.errors import BlendsplatError
 
 from .engine import Engine
-from .errors import InvalidArgument, ServiceError, http_status, to_status
+from .errors import InvalidArgument, ServiceError, Unavailable, http_status, to_status
+from .jobs_api import ROUTERS as TRAINING_ROUTERS
+from .jobs_api import Training
+from .uploads import UploadTooLarge
 
 log = logging.getLogger(__name__)
 STATIC = Path(__file__).parent / "static"
@@ -35,12 +51,118 @@ def as_json(message) -> dict[str, Any]:
     return json_format.MessageToDict(message, always_print_fields_with_no_presence=True)
 
 
-def _error_response(exc: BaseException) -> JSONResponse:
+class BodyTooLarge(InvalidArgument):
+    """HTTP only: a request body over its route's limit (413; the connection is closed, the rest never read)."""
+
+
+class BodyTimeout(InvalidArgument):
+    """HTTP only: a request body that stalled (408; the connection is closed)."""
+
+
+class BodyRefused(Unavailable):
+    """A request body still arriving when the server drains (503; the connection is closed)."""
+
+
+# HTTP only: these are INVALID_ARGUMENT on the wire, with their own HTTP statuses.
+_HTTP_ONLY = ((UploadTooLarge, 413), (BodyTooLarge, 413), (BodyTimeout, 408))
+# The body was not read to its end: close the connection rather than read and discard the rest.
+_CLOSE = (BodyTooLarge, BodyTimeout, BodyRefused)
+
+
+def _error_response(exc: BaseException, where: str = "") -> JSONResponse:
     status = to_status(exc)
+    body = {"error": as_json(status) | {"code": pb.Code.Name(status.code)}}
     if status.code == pb.INTERNAL:
-        log.exception("internal error", exc_info=exc)
-    return JSONResponse({"error": as_json(status) | {"code": pb.Code.Name(status.code)}},
-                        status_code=http_status(status.code))
+        error_id = uuid.uuid4().hex[:16]
+        log.error("internal error %s%s: %s: %s", error_id, f" ({where})" if where else "", type(exc).__name__,
+                  exc, exc_info=exc)
+        body["error"]["message"] = f"{status.message}; error id {error_id}"
+        body["error"]["errorId"] = error_id
+    http = next((code for kind, code in _HTTP_ONLY if isinstance(exc, kind)), None) or http_status(status.code)
+    headers = {"Connection": "close"} if isinstance(exc, _CLOSE) else None
+    return JSONResponse(body, status_code=http, headers=headers)
+
+
+def _http_exception(exc: StarletteHTTPException) -> JSONResponse:
+    """Starlette's own HTTP errors (no such route, method not allowed) in the one error shape, status kept."""
+    code = {404: pb.NOT_FOUND, 503: pb.UNAVAILABLE}.get(exc.status_code, pb.INVALID_ARGUMENT)
+    body = {"error": {"code": pb.Code.Name(code), "message": str(exc.detail), "field": ""}}
+    return JSONResponse(body, status_code=exc.status_code, headers=getattr(exc, "headers", None))
+
+
+class RequestGuard:
+    """ASGI middleware over every HTTP request (WebSockets pass through):
+
+    - the request body (a request that announces one), as the route reads it: a body that sends no bytes for
+      ``body_timeout`` seconds raises :class:`BodyTimeout` (408), and one still arriving when ``closing`` is set
+      (the server drains) raises :class:`BodyRefused` (503), inside the route, so what it was writing (an upload's
+      temp file) is removed on the way out like for any other refusal;
+    - an exception that no handler mapped: a typed JSON 500 (INTERNAL, an error id) and the traceback in the log
+      under the same id, never uvicorn's plain-text 500.
+    """
+
+    def __init__(self, app, *, body_timeout: float, closing: asyncio.Event):
+        self.app, self.body_timeout, self.closing = app, body_timeout, closing
+
+    async def __call__(self, scope, receive, send) -> None:
+        if scope["type"] != "http":
+            return await self.app(scope, receive, send)
+        body_done = not any(name == b"transfer-encoding" or (name == b"content-length" and value.strip().lstrip(b"0"))
+                            for name, value in scope.get("headers", ()))  # no body announced: nothing to guard
+        started = False
+
+        async def guarded_receive():
+            nonlocal body_done
+            if body_done:  # after the body: only the disconnect is left to wait for, however long
+                return await receive()
+            if self.closing.is_set():
+                raise BodyRefused("the server is shutting down; the request body was not finished", field="body")
+            message_task = asyncio.ensure_future(receive())
+            closing_task = asyncio.ensure_future(self.closing.wait())
+            try:
+                done, _ = await asyncio.wait((message_task, closing_task), timeout=self.body_timeout,
+                                             return_when=asyncio.FIRST_COMPLETED)
+            finally:
+                closing_task.cancel()
+            if message_task in done:
+                message = message_task.result()
+                body_done = message["type"] != "http.request" or not message.get("more_body", False)
+                return message
+            message_task.cancel()
+            if closing_task in done:
+                raise BodyRefused("the server is shutting down; the request body was not finished", field="body")
+            raise BodyTimeout(f"no bytes of the request body arrived for {self.body_timeout:g} s", field="body")
+
+        async def tracked_send(message) -> None:
+            nonlocal started
+            started = started or message["type"] == "http.response.start"
+            await send(message)
+
+        try:
+            await self.app(scope, guarded_receive, tracked_send)
+        except Exception as exc:  # noqa: BLE001 - nothing mapped it: a typed 500, logged with its id
+            response = _error_response(exc, f"{scope.get('method', '')} {scope.get('path', '')}")  # logs it
+            if started:  # too late for an answer: uvicorn closes the connection
+                return
+            await response(scope, receive, send)
+
+
+def stop_reading_bodies(app: FastAPI) -> None:
+    """Drain: every request body still arriving is refused with 503 (:class:`RequestGuard`)."""
+    app.state.closing.set()
+
+
+def _validation_error(exc: RequestValidationError) -> InvalidArgument:
+    """FastAPI's request validation error as the service's INVALID_ARGUMENT, naming the first field at fault
+    (``iterations``, ``limit``, ``idempotency-key``; the location's kind, body or query, left out)."""
+    errors = exc.errors()
+    first = errors[0] if errors else {}
+    location = [str(part) for part in first.get("loc", ())]
+    field = ".".join(location[1:]) if len(location) > 1 else (location[0] if location else "body")
+    message = str(first.get("msg", "invalid request"))
+    if len(errors) > 1:
+        message += f" (and {len(errors) - 1} more problem{'s' if len(errors) > 2 else ''})"
+    return InvalidArgument(message, field=field)
 
 
 def _engine(request: Request | WebSocket) -> Engine:
@@ -90,16 +212,31 @@ render = APIRouter(tags=["render"])
                          "is the encoded image; X-Blendsplat-Timings holds the per-stage milliseconds.",
              response_class=Response)
 async def render_frame(request: Request) -> Response:
-    body = await request.body()
-    if len(body) > _engine(request).settings.max_message_bytes:
-        raise InvalidArgument("the request is too large", field="body")
+    limit = _engine(request).settings.max_message_bytes
+    body = await _bounded_body(request, limit)
     try:
         message = json_format.Parse(body or b"{}", pb.RenderRequest())
-    except json_format.ParseError as e:
-        raise InvalidArgument(f"not a RenderRequest: {e}", field="body") from None
+    except (json_format.ParseError, UnicodeDecodeError, RecursionError, ValueError, TypeError) as e:
+        problem = "nested too deeply" if isinstance(e, RecursionError) else str(e)[:300]
+        raise InvalidArgument(f"not a RenderRequest in JSON (UTF-8): {problem}", field="body") from None
     frame = await _engine(request).render_once(message)
     return Response(frame.data, media_type=MEDIA_TYPES[frame.codec],
                     headers={"X-Blendsplat-Timings": json.dumps(as_json(frame.timings))})
+
+
+async def _bounded_body(request: Request, limit: int) -> bytes:
+    """The request body, refused before it is read when its declared length passes ``limit`` and as soon as the
+    bytes received do (a body without a length is counted as it arrives): never more than ``limit`` in memory."""
+    declared = request.headers.get("content-length")
+    if declared is not None and (not declared.isdigit() or int(declared) > limit):
+        raise BodyTooLarge(f"the request body is {declared[:20]} bytes; the limit is {limit}", field="body")
+    chunks, size = [], 0
+    async for chunk in request.stream():
+        size += len(chunk)
+        if size > limit:
+            raise BodyTooLarge(f"the request body exceeds the limit of {limit} bytes", field="body")
+        chunks.append(chunk)
+    return b"".join(chunks)
 
 
 async def _receive(ws: WebSocket) -> tuple[pb.StreamRequest | None, bool, str | None]:
@@ -186,12 +323,20 @@ async def healthz() -> dict:
 async def readyz(request: Request) -> JSONResponse:
     checks = _engine(request).readiness()
     ready = all(checks.values())
-    return JSONResponse({"ready": ready, "checks": checks}, status_code=200 if ready else 503)
+    body: dict[str, Any] = {"ready": ready, "checks": checks}
+    if not ready:  # why, check by check (the process registers its reasons: texts, or callables asked now)
+        known = {"not_draining": "the server is shutting down", "warm_up": "the warm-up frame is not rendered yet",
+                 **request.app.state.problems}
+        reasons = {name: known.get(name, "failed") for name, ok in checks.items() if not ok}
+        body["reasons"] = {name: (why() if callable(why) else why) or "failed" for name, why in reasons.items()}
+    return JSONResponse(body, status_code=200 if ready else 503)
 
 
 @ops.get("/metrics", summary="Prometheus metrics", response_class=Response)
 async def metrics(request: Request) -> Response:
-    return Response(generate_latest(_engine(request).metrics.registry), media_type=CONTENT_TYPE_LATEST)
+    # off the event loop: the job metrics query the job database when scraped
+    body = await asyncio.to_thread(generate_latest, _engine(request).metrics.registry)
+    return Response(body, media_type=CONTENT_TYPE_LATEST)
 
 
 @ops.get("/demo", summary="A page with sliders that drives an avatar over the WebSocket stream",
@@ -200,17 +345,40 @@ async def demo() -> FileResponse:
     return FileResponse(STATIC / "demo.html", media_type="text/html")
 
 
-def create_app(engine: Engine) -> FastAPI:
+@ops.get("/jobs", summary="A page to upload a dataset, start a training job, watch it learn live, cancel, delete, "
+                          "and open the trained avatar in /demo", response_class=FileResponse)
+async def jobs_page() -> FileResponse:
+    return FileResponse(STATIC / "jobs.html", media_type="text/html")
+
+
+def create_app(engine: Engine, training: Training | None = None) -> FastAPI:
+    """The app over ``engine``; with ``training``, also the training jobs' routes (:mod:`service.jobs_api`)."""
     app = FastAPI(title="Blendsplat render service", version="1",
                   description="Gaussian blendshape head avatars, animated and rendered live. The gRPC service "
-                              "blendsplat.v1.RenderService carries the same messages.")
+                              "blendsplat.v1.RenderService carries the same messages. Training jobs: upload a "
+                              "tracked video (/v1/uploads), submit a job (/v1/jobs), a worker trains it.")
     app.state.engine = engine
+    app.state.training = training
+    app.state.problems = {}  # readiness check -> why it fails: a text, or a callable asked then (set by the process)
+    app.state.closing = asyncio.Event()  # set by stop_reading_bodies (drain)
     for router in (avatars, render, ops):
         app.include_router(router)
+    if training is not None:
+        for router in TRAINING_ROUTERS:
+            app.include_router(router)
 
     async def on_error(request: Request, exc: Exception) -> JSONResponse:
         return _error_response(exc)
 
+    async def on_invalid(request: Request, exc: Exception) -> JSONResponse:
+        return _error_response(_validation_error(exc))
+
+    async def on_http_exception(request: Request, exc: Exception) -> JSONResponse:
+        return _http_exception(exc)
+
     app.add_exception_handler(ServiceError, on_error)
     app.add_exception_handler(BlendsplatError, on_error)
+    app.add_exception_handler(RequestValidationError, on_invalid)
+    app.add_exception_handler(StarletteHTTPException, on_http_exception)
+    app.add_middleware(RequestGuard, body_timeout=engine.settings.body_timeout_seconds, closing=app.state.closing)
     return app

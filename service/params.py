@@ -1,23 +1,34 @@
 """Wire messages -> render_core inputs: frame parameters, cameras, background, output size and codec.
 
-Both transports hand the same protobuf messages to the engine, which converts them here; every problem raises
-a typed error naming the field (a ``FrameError`` from render_core or :class:`InvalidArgument`).
+The one place where what a client sends is checked, for every transport (gRPC streams and Render, the WebSocket,
+POST /v1/render all build their jobs here, through :meth:`service.engine.Job.build` and the session): every frame
+parameter (coefficients, joint rotations, eyelids, the camera's intrinsics and rotation, the background) is
+validated before the frame can join a batch, and every problem raises a typed error naming the field as the client
+sent it (``camera.opencv.k``, ``joints.jaw``; a ``FrameError`` from render_core or :class:`InvalidArgument`).
+
+Per-frame work is bounded here too: :func:`frame_cost` estimates a frame's (Gaussian, pixel) pairs from the
+avatar's Gaussians at rest, its camera and output size, and :func:`check_cost` refuses a frame over the replica's
+budget (``BLENDSPLAT_MAX_FRAME_SPLAT_PIXELS``) with RESOURCE_EXHAUSTED naming the size or the camera.
 """
 
 from __future__ import annotations
 
 import math
+import weakref
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 
 from blendsplat.v1 import render_pb2 as pb
 from render_core.avatar import Avatar
-from render_core.camera import Cameras
+from render_core.camera import Cameras, calibration_problem
 from render_core.deform import Frame
 from render_core.drive import parse_frame, parse_line
+from render_core.errors import FrameError
+from render_core.rotation import axis_angle_to_matrix, rot6d_to_matrix
 
-from .errors import InvalidArgument
+from .errors import InvalidArgument, ResourceExhausted, some
 
 CODEC_NAMES = {pb.CODEC_UNSPECIFIED: "jpeg", pb.CODEC_JPEG: "jpeg", pb.CODEC_PNG: "png",
                pb.CODEC_RAW_RGBA: "raw_rgba", pb.CODEC_H264: "h264"}
@@ -50,13 +61,20 @@ def expression_order(avatar: Avatar, names: list[str]) -> list[str]:
     """The order of positional coefficients: the client's (checked) or the avatar's."""
     if not names:
         return list(avatar.expression_names)
-    unknown = [n for n in names if n not in avatar.expression_names]
+    known = set(avatar.expression_names)
+    unknown = [n for n in names if n not in known]
     if unknown:
-        raise InvalidArgument(f"unknown expression name(s) {', '.join(map(repr, unknown))}; this avatar has: "
-                              f"{', '.join(avatar.expression_names)}", field="expression_names")
+        raise InvalidArgument(f"unknown expression names {some(unknown)}; this avatar has "
+                              f"{len(known)}: {some(avatar.expression_names, 10)}", field="expression_names")
     if len(set(names)) != len(names):
         raise InvalidArgument("expression names repeat", field="expression_names")
     return list(names)
+
+
+def _finite(value: float, field: str) -> float:
+    if not math.isfinite(value):
+        raise InvalidArgument(f"must be finite, got {value}", field=field)
+    return value
 
 
 def _camera_value(cam: pb.Camera) -> object | None:
@@ -65,8 +83,16 @@ def _camera_value(cam: pb.Camera) -> object | None:
         return cam.preset
     if kind == "orbit":
         o = cam.orbit
-        value = {"yaw": o.yaw_deg, "pitch": o.pitch_deg}
-        return value | ({"distance": o.distance} if o.distance else {})
+        yaw = _finite(o.yaw_deg, "camera.orbit.yaw_deg")
+        pitch = _finite(o.pitch_deg, "camera.orbit.pitch_deg")
+        distance = _finite(o.distance, "camera.orbit.distance")
+        if not -90.0 < pitch < 90.0:
+            raise InvalidArgument(f"must be between -90 and 90 degrees (exclusive), got {pitch}",
+                                  field="camera.orbit.pitch_deg")
+        if distance < 0:
+            raise InvalidArgument(f"must be positive (0: the avatar's default), got {distance}",
+                                  field="camera.orbit.distance")
+        return {"yaw": yaw, "pitch": pitch} | ({"distance": distance} if distance else {})
     if kind == "opencv":
         c = cam.opencv
         for field, values, n in (("k", c.k, 9), ("r", c.r, 9), ("t", c.t, 3)):
@@ -80,12 +106,37 @@ def _camera_value(cam: pb.Camera) -> object | None:
     return None
 
 
+# render_core's names of a camera's parts -> the wire's (OpenCVCamera's fields).
+_OPENCV_FIELDS = {"camera.K": "camera.opencv.k", "camera.R": "camera.opencv.r", "camera.t": "camera.opencv.t",
+                  "camera.width": "camera.opencv.width", "camera": "camera.opencv"}
+
+
 def camera(avatar: Avatar, cam: pb.Camera | None, out: Output, default: Cameras | None = None) -> Cameras:
-    """The camera a message asks for, else ``default``, else the avatar's default camera at the output size."""
+    """The camera a message asks for, else ``default``, else the avatar's default camera at the output size.
+
+    Whatever the message gave (a preset, an orbit, an OpenCV calibration rescaled to the output size), the camera
+    that comes out is checked as render_core checks every user camera
+    (:func:`render_core.camera.calibration_problem`: finite, K = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] with
+    positive focals, R a rotation), errors naming the wire's field (``camera.opencv.k``, ``camera.orbit``)."""
     value = _camera_value(cam) if cam is not None else None
     if value is None and default is not None:
         return default
-    return parse_line(avatar, {} if value is None else {"camera": value}, out.width, out.height).camera
+    kind = cam.WhichOneof("kind") if value is not None else None
+    try:
+        cameras = parse_line(avatar, {} if value is None else {"camera": value}, out.width, out.height).camera
+    except FrameError as e:
+        if kind != "opencv":
+            raise
+        raise FrameError(e.detail, field=_OPENCV_FIELDS.get(e.field or "camera", e.field)) from None
+    problem = calibration_problem(cameras.K[0].double(), cameras.R[0].double(), cameras.t[0].double())
+    if problem is not None:  # e.g. a K whose focal vanished in the rescale, a degenerate orbit
+        part, message = problem
+        if kind == "opencv":
+            raise InvalidArgument(f"{message} (at the output size {out.width}x{out.height})",
+                                  field=_OPENCV_FIELDS[f"camera.{part}"])
+        raise InvalidArgument(f"gives no usable camera ({part}: {message})",
+                              field=f"camera.{kind}" if kind else "camera")
+    return cameras
 
 
 def background(color: pb.Color | None, default: torch.Tensor | None = None, field: str = "background"
@@ -99,6 +150,38 @@ def background(color: pb.Color | None, default: torch.Tensor | None = None, fiel
     return torch.tensor(values)
 
 
+def _rotation(avatar: Avatar, name: str, rot: pb.Rotation) -> list[float]:
+    """One joint's rotation values: a joint of the avatar, 3 (axis-angle) or 6 (6D) finite values. Whether they
+    give a rotation matrix is checked with the frame (:func:`_not_a_rotation` names the joint when they do not)."""
+    if name not in avatar.joint_names:
+        raise InvalidArgument(f"unknown joint {some([name])}; this avatar's joints: {some(avatar.joint_names, 10)}",
+                              field="joints")
+    field, values = f"joints.{name}", list(rot.values)
+    if len(values) not in (3, 6):
+        raise InvalidArgument(f"expected axis-angle (3 values) or 6D (6 values), got {len(values)}", field=field)
+    if not all(math.isfinite(v) for v in values):
+        raise InvalidArgument("values must be finite (no NaN or Infinity)", field=field)
+    return values
+
+
+def _not_a_rotation(joints: dict[str, list[float]]) -> InvalidArgument | None:
+    """The error naming the first joint whose values do not give a rotation matrix as the frame computes it
+    (float32; orthonormal to 1e-3, determinant +1): 6D needs two non-zero, non-parallel 3-vectors, axis-angle an
+    angle whose square is finite."""
+    for name, values in joints.items():
+        v = torch.tensor(values, dtype=torch.float32)
+        m = (axis_angle_to_matrix(v) if len(values) == 3 else rot6d_to_matrix(v)).double()
+        ok = bool(torch.isfinite(m).all())
+        if ok:
+            ok = float((m @ m.T - torch.eye(3, dtype=torch.float64)).abs().max()) <= 1e-3
+            ok = ok and float(torch.linalg.det(m)) > 1 - 1e-3
+        if not ok:
+            return InvalidArgument("not a rotation: 6D needs two non-zero, non-parallel 3-vectors (the first two rows "
+                                   "of the matrix); axis-angle an angle in radians of moderate size",
+                                   field=f"joints.{name}")
+    return None
+
+
 def frame(avatar: Avatar, params: pb.FrameParams, order: list[str]) -> Frame:
     """One frame (batch of 1) from a FrameParams message; ``order`` maps positional coefficients to names."""
     line: dict[str, object] = {}
@@ -107,14 +190,98 @@ def frame(avatar: Avatar, params: pb.FrameParams, order: list[str]) -> Frame:
     if params.coefficients:
         if len(params.coefficients) != len(order):
             raise InvalidArgument(
-                f"expected {len(order)} coefficients in the order {', '.join(order)}; got {len(params.coefficients)}"
+                f"expected {len(order)} coefficients in the order {some(order, 10)}; got {len(params.coefficients)}"
                 " (or give them by name in named_coefficients)", field="coefficients")
         same = order is avatar.expression_names or order == avatar.expression_names
         line["expression"] = list(params.coefficients) if same else dict(zip(order, params.coefficients, strict=True))
     elif params.named_coefficients:
+        known = set(avatar.expression_names)
+        unknown = [n for n in params.named_coefficients if n not in known]
+        if unknown:
+            raise InvalidArgument(f"unknown expression names {some(unknown)}; this avatar has {len(known)}: "
+                                  f"{some(avatar.expression_names, 10)}", field="expression")
         line["expression"] = dict(params.named_coefficients)
     if params.eyelids:
         line["eyelids"] = list(params.eyelids)
-    if params.joints:
-        line["joints"] = {name: list(rot.values) for name, rot in params.joints.items()}
-    return parse_frame(avatar, line)
+    joints = {name: _rotation(avatar, name, rot) for name, rot in params.joints.items()}
+    if joints:
+        line["joints"] = joints
+    try:
+        return parse_frame(avatar, line)
+    except FrameError as e:  # the frame's check of every joint matrix: name the joint the client sent
+        if e.field == "joint_rotations" and (named := _not_a_rotation(joints)) is not None:
+            raise named from None
+        raise
+
+
+# ------------------------------------------------------------------------------------------- per-frame budget
+SAMPLE = 4096  # Gaussians the cost estimate looks at (evenly spread over the avatar; the sum is scaled up)
+_NEAR, _BLUR, _ALPHA_MIN, _EXTENT_MAX = 0.01, 0.3, 1.0 / 255.0, 3.33  # the rasterizers' (docs/method.md section 9)
+
+
+@dataclass(frozen=True)
+class _Footprints:
+    """What the cost estimate needs of an avatar at rest, for a sample of its Gaussians (face and mouth)."""
+
+    means: np.ndarray  # [S, 3] world space, metres
+    sigma: np.ndarray  # [S] largest standard deviation, metres
+    extent: np.ndarray  # [S] opacity-aware extent in standard deviations (0: never visible)
+    weight: float  # Gaussians per sampled one
+
+
+_footprints: dict[int, _Footprints] = {}
+
+
+def _footprints_of(avatar: Avatar) -> _Footprints:
+    key = id(avatar)
+    if key not in _footprints:
+        groups = [g for g in (avatar.neutral, avatar.mouth) if g.count]
+        n = sum(g.count for g in groups)
+        if n == 0:
+            fp = _Footprints(np.zeros((0, 3)), np.zeros(0), np.zeros(0), 0.0)
+        else:
+            idx = torch.from_numpy(np.unique(np.linspace(0, n - 1, min(n, SAMPLE)).round().astype(np.int64)))
+
+            def cat(name: str) -> torch.Tensor:
+                return torch.cat([getattr(g, name).detach().to(torch.float64) for g in groups])[idx]
+
+            opacity = torch.sigmoid(cat("opacity_logits"))
+            extent = torch.sqrt(2.0 * torch.log((opacity / _ALPHA_MIN).clamp_min(1.0))).clamp(max=_EXTENT_MAX)
+            fp = _Footprints(cat("means").numpy(), cat("log_scales").amax(-1).exp().numpy(), extent.numpy(),
+                             n / len(idx))
+        _footprints[key] = fp
+        weakref.finalize(avatar, _footprints.pop, key, None)
+    return _footprints[key]
+
+
+def frame_cost(avatar: Avatar, cameras: Cameras) -> float:
+    """About how many (Gaussian, pixel) pairs one frame of ``avatar`` seen by ``cameras`` (one camera) splats: the
+    sum over the Gaussians at rest of their screen boxes (mean +- the opacity-aware extent times the largest
+    projected standard deviation), clipped to the image; estimated from an even sample of at most ``SAMPLE``
+    Gaussians, so it costs the same for every avatar. Deformation (expressions, joints) is not in the estimate."""
+    fp = _footprints_of(avatar)
+    if not len(fp.sigma):
+        return 0.0
+    K, R, t = (x[0].detach().to(torch.float64).numpy() for x in (cameras.K, cameras.R, cameras.t))
+    w, h = cameras.width, cameras.height
+    with np.errstate(all="ignore"):
+        p = fp.means @ R.T + t
+        z = np.maximum(p[:, 2], _NEAR)
+        rx = fp.extent * np.sqrt((fp.sigma * K[0, 0] / z) ** 2 + _BLUR)
+        ry = fp.extent * np.sqrt((fp.sigma * K[1, 1] / z) ** 2 + _BLUR)
+        mx, my = p[:, 0] / z * K[0, 0] + K[0, 2], p[:, 1] / z * K[1, 1] + K[1, 2]
+        bw = np.clip(mx + rx, 0, w) - np.clip(mx - rx, 0, w)
+        bh = np.clip(my + ry, 0, h) - np.clip(my - ry, 0, h)
+        area = np.nan_to_num(bw * bh, nan=float(w * h), posinf=float(w * h))
+    return float(np.where(p[:, 2] >= _NEAR, np.clip(area, 0, w * h), 0.0).sum() * fp.weight)
+
+
+def check_cost(cost: float, budget: float, out: Output, field: str) -> float:
+    """``cost`` (from :func:`frame_cost`) unless it is over the replica's per-frame ``budget``: then
+    RESOURCE_EXHAUSTED naming ``field`` (``width`` for the output size, ``camera`` for a frame's own camera)."""
+    if cost > budget:
+        raise ResourceExhausted(
+            f"this frame would splat about {cost:.3g} (Gaussian, pixel) pairs at {out.width}x{out.height}, over this "
+            f"server's per-frame budget of {budget:.3g} (BLENDSPLAT_MAX_FRAME_SPLAT_PIXELS): ask for a smaller size "
+            "or a camera further away", field=field)
+    return cost

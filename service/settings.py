@@ -28,8 +28,15 @@ class Settings(BaseSettings):
     max_in_flight: int = Field(2, ge=1, le=16, description="default frames sent but not acknowledged")
     max_size: int = Field(2048, ge=16, le=8192, description="largest output width or height")
     max_batch: int = Field(8, ge=1, le=64, description="frames of one avatar rendered in one call")
+    max_frame_splat_pixels: float = Field(
+        1e10, gt=0, description="per-frame render budget: a frame whose estimated (Gaussian, pixel) pairs (the "
+                                "avatar at rest, its camera and size) pass it is refused (RESOURCE_EXHAUSTED naming "
+                                "the size or camera); a batch holds at most this much work")
     max_message_bytes: int = Field(1 << 20, ge=1024, description="largest request message (gRPC, WebSocket)")
     max_upload_bytes: int = Field(2 << 30, ge=1024, description="largest bundle upload")
+    body_timeout_seconds: float = Field(
+        30.0, gt=0, description="an HTTP request body (an upload) that sends no bytes this long is refused (408) "
+                                "and what it had written is removed")
     shutdown_delay_seconds: float = Field(
         0.0, ge=0, description="SIGTERM: keep serving open streams (not ready, no new ones) this long before "
                                "draining, so load balancers stop routing here first")
@@ -42,6 +49,40 @@ class Settings(BaseSettings):
     demo_blendshapes: int = Field(52, ge=1, description="synthetic demo avatar only (the open head has 52)")
     warmup_size: int = Field(512, ge=16, description="readiness waits for one frame of this size")
 
+    # Training jobs (the job database, dataset uploads, workers).
+    jobs_url: str | None = Field(
+        None, description="job database URL: sqlite:///PATH (one machine) or postgresql+psycopg://... (default: "
+                          "a SQLite file <data_dir>/jobs.db)")
+    max_dataset_bytes: int = Field(8 << 30, ge=1024, description="largest dataset archive upload")
+    upload_retention_hours: float = Field(
+        168.0, ge=0, description="uploaded datasets (face video: biometric data) are deleted this long after "
+                                 "upload (0: never by age; DELETE /v1/uploads/{id} deletes at once)")
+    work_retention_hours: float = Field(
+        168.0, ge=0, description="a finished job's work folder (checkpoints, previews, log) is deleted this long "
+                                 "after it ended (0: never by age)")
+    job_lease_seconds: float = Field(60.0, ge=1, description="a worker that misses heartbeats this long loses "
+                                                             "its job to the next worker")
+    heartbeat_seconds: float = Field(5.0, gt=0, description="worker heartbeat and progress interval")
+    job_max_attempts: int = Field(3, ge=1, le=100, description="attempts of a job before it fails")
+
     @property
     def bundle_dir(self) -> Path:
         return self.data_dir / "bundles"
+
+    @property
+    def upload_dir(self) -> Path:
+        return self.data_dir / "uploads"
+
+    @property
+    def work_dir(self) -> Path:
+        """Training work folders, one per job (``<work_dir>/<job id>``)."""
+        return self.data_dir / "work"
+
+    @property
+    def facemodel_dir(self) -> Path:
+        """Face models other than the shipped open head (e.g. FLAME), by name: ``<facemodel_dir>/<name>.*``."""
+        return self.data_dir / "facemodels"
+
+    @property
+    def jobs_database_url(self) -> str:
+        return self.jobs_url or f"sqlite:///{(self.data_dir / 'jobs.db').absolute()}"

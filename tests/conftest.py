@@ -1,3 +1,6 @@
+import contextlib
+import secrets
+
 import pytest
 import torch
 
@@ -8,6 +11,23 @@ from render_core.tools.synth import synth_avatar
 def avatar():
     """A small synthetic avatar (600 face Gaussians, 6 blendshapes, SH degree 3, 75 mouth Gaussians)."""
     return synth_avatar(gaussians=600, blendshapes=6, seed=3)
+
+
+@pytest.fixture(scope="session")
+def tiny_video_archive(head, tmp_path_factory) -> bytes:
+    """A tar.gz of a 12-frame 64 x 64 synthetic tracked video on the open head (10 training, 2 held-out frames),
+    its dataset inside one top-level folder ``video``: what the job tests upload."""
+    import io
+    import tarfile
+
+    from render_core.data.generate import synth_dataset
+
+    folder = tmp_path_factory.mktemp("video") / "video"
+    synth_dataset(folder, frames=12, size=64, seed=1, facemodel=head)
+    buffer = io.BytesIO()
+    with tarfile.open(fileobj=buffer, mode="w:gz") as tar:
+        tar.add(folder, arcname="video")
+    return buffer.getvalue()
 
 
 @pytest.fixture(scope="session")
@@ -65,3 +85,40 @@ def live_server(tmp_path_factory):
     server = LiveServer(tmp_path_factory.mktemp("live-server"))
     yield server
     server.stop()
+
+
+# ------------------------------------------------------------------------------------------- PostgreSQL
+PG_HOST, PG_PORT = "127.0.0.1", 5432
+
+
+@pytest.fixture(scope="session")
+def pg_admin_user():
+    """The PostgreSQL user that can create databases (None and why, when there is no server)."""
+    psycopg = pytest.importorskip("psycopg")
+    errors = []
+    for user in ("postgres", "root"):
+        try:
+            with psycopg.connect(host=PG_HOST, port=PG_PORT, dbname="test", user=user, connect_timeout=3):
+                return user, None
+        except psycopg.Error as exc:
+            errors.append(f"{user}: {str(exc).strip().splitlines()[0]}")
+    return None, "; ".join(errors)
+
+
+@contextlib.contextmanager
+def postgres_database(pg_admin_user, prefix: str = "blendsplat_test"):
+    """The URL of a fresh PostgreSQL database of the test's own, dropped afterwards (the test skips, saying why,
+    when PostgreSQL is unreachable)."""
+    import psycopg
+
+    user, why = pg_admin_user
+    if user is None:
+        pytest.skip(f"PostgreSQL at {PG_HOST}:{PG_PORT} is unreachable ({why})")
+    name = f"{prefix}_{secrets.token_hex(6)}"
+    with psycopg.connect(host=PG_HOST, port=PG_PORT, dbname="test", user=user, autocommit=True) as admin:
+        admin.execute(f'CREATE DATABASE "{name}"')
+    try:
+        yield f"postgresql+psycopg://{user}@{PG_HOST}:{PG_PORT}/{name}"
+    finally:
+        with psycopg.connect(host=PG_HOST, port=PG_PORT, dbname="test", user=user, autocommit=True) as admin:
+            admin.execute(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)')

@@ -8,6 +8,7 @@ import av
 import numpy as np
 import OpenImageIO as oiio
 import pytest
+import torch
 
 from render_core.tools.cli import main
 
@@ -207,3 +208,28 @@ def test_train_cli_writes_a_bundle_and_its_workdir(tmp_path, head, capsys, monke
     for name in ("log.jsonl", "summary.json", "report.json", "contact_sheet.png", "curves.png"):
         assert (work / name).is_file(), name
     assert {"psnr", "ssim", "psnr_head", "frames"} <= set(summary["eval"])
+
+
+def test_bundle_convert_rewrites_a_schema_1_bundle_as_schema_2_with_the_same_content(tmp_path, capsys):
+    from render_core.bundle import read_bundle, read_manifest, stored_schema_version, write_bundle
+    from render_core.tools.synth import synth_avatar
+
+    avatar = synth_avatar(gaussians=300, blendshapes=5, seed=4, local=True)
+    v1, v2 = tmp_path / "v1.bundle", tmp_path / "v2.bundle"
+    write_bundle(avatar, v1, schema_version=1)
+    assert main(["bundle", "convert", str(v1), "--out", str(v2)]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert (out["from_schema"], out["schema_version"], out["precision"]) == (1, 2, "fp16")
+    assert stored_schema_version(v2) == 2 and out["bytes"] == v2.stat().st_size < v1.stat().st_size
+    # The same avatar, written directly as schema 2, is the same content (same digest: provenance is kept).
+    direct = tmp_path / "direct.bundle"
+    write_bundle(read_bundle(v1), direct)
+    assert read_manifest(direct)["digest"] == out["digest"]
+    a, b = read_bundle(v1), read_bundle(v2)
+    assert all(torch.equal(x, y) for x, y in zip(a.dense_deltas().tensors().values(),
+                                                 b.dense_deltas().tensors().values(), strict=True))
+    # A broken input is refused before anything is written.
+    broken = tmp_path / "broken.bundle"
+    broken.write_bytes(v1.read_bytes()[:-10])
+    assert main(["bundle", "convert", str(broken), "--out", str(tmp_path / "x.bundle")]) == 1
+    assert not (tmp_path / "x.bundle").exists()

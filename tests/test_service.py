@@ -205,17 +205,17 @@ BAD_FRAMES = [
 ]
 
 
-def _check_bad_then_good(stream, message: dict, field: str | None) -> None:
+def _check_bad_then_good(stream, message: dict, field: str | None, index: int = 99) -> None:
     stream.send(**message)
     reply = stream.next()
     assert reply.WhichOneof("msg") == "error", reply
     assert reply.error.code == pb.INVALID_ARGUMENT
     if field is not None:
         assert reply.error.field == field, reply.error
-    stream.send(frame=pb.FrameParams(index=99))  # the stream goes on
+    stream.send(frame=pb.FrameParams(index=index))  # the stream goes on
     frame = next_frame(stream)
-    assert frame.index == 99
-    stream.send(ack=pb.Ack(index=99))
+    assert frame.index == index
+    stream.send(ack=pb.Ack(index=index))
 
 
 @pytest.mark.parametrize("name,params,field", BAD_FRAMES, ids=[b[0] for b in BAD_FRAMES])
@@ -230,7 +230,7 @@ def test_bad_stream_messages_over_grpc(stub):
     stream = GrpcStream(stub, avatar_id="demo", width=SIZE)
     stream.next()
     _check_bad_then_good(stream, {"open": pb.SessionConfig(avatar_id="demo")}, "open")
-    _check_bad_then_good(stream, {}, "msg")
+    _check_bad_then_good(stream, {}, "msg", index=100)  # frame indices increase within a stream
     assert stream.close()[-1].status.code == pb.OK
 
 
