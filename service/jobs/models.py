@@ -1,8 +1,10 @@
 """The job database: its tables (SQLAlchemy 2 typed ORM), the values the store hands out, and the engine factory.
 
-Two tables. ``jobs`` is the single source of truth of the training queue: a job's state, spec, lease, attempts,
+Three tables. ``jobs`` is the single source of truth of the training queue: a job's state, spec, lease, attempts,
 cancel flag, checkpoint, latest progress, error and result. ``job_events`` is its append-only history (state
-changes, progress reports, previews, log lines), replayed in id order by the event stream.
+changes, progress reports, previews, log lines), replayed in id order by the event stream
+(:mod:`service.job_events`). ``webhook_deliveries`` is the outbox of a job's webhook (the spec's ``webhook_url``):
+one row per state change, written in the state change's transaction and sent by :mod:`service.webhooks`.
 
 The schema is owned by the Alembic migrations in ``migrations/versions``; these classes must match them (a test
 runs Alembic's autogenerate comparison). Change both together: edit a model, then add a migration.
@@ -60,6 +62,12 @@ class EventKind(enum.StrEnum):
     STATE = "state"
     PREVIEW = "preview"
     LOG = "log"
+
+
+class DeliveryStatus(enum.StrEnum):
+    PENDING = "pending"  # due at next_attempt_at (a dispatcher that claimed it holds it until then)
+    DELIVERED = "delivered"  # a 2xx answer: never sent again
+    FAILED = "failed"  # out of attempts or time
 
 
 class UTCDateTime(TypeDecorator[datetime]):
@@ -161,6 +169,34 @@ class JobEventRecord(Base):
     )
 
 
+class WebhookDeliveryRecord(Base):
+    """One webhook message about a job's state change (a row of ``webhook_deliveries``). ``id`` is the message id
+    the receiver sees (``webhook-id``), the same on every attempt: ``msg_<job id>_<state event id>``."""
+
+    __tablename__ = "webhook_deliveries"
+
+    id: Mapped[str] = mapped_column(String(128), primary_key=True)
+    job_id: Mapped[str] = mapped_column(String(64), ForeignKey("jobs.id", ondelete="CASCADE"))
+    event: Mapped[str] = mapped_column(String(32))  # job.running, job.succeeded, ...
+    url: Mapped[str] = mapped_column(Text)
+    payload: Mapped[dict[str, Any]]
+    status: Mapped[str] = mapped_column(String(16))
+    attempts: Mapped[int] = mapped_column(Integer, default=0)
+    next_attempt_at: Mapped[datetime | None]
+    last_status: Mapped[int | None] = mapped_column(Integer)  # the last answer's HTTP status
+    last_error: Mapped[str | None] = mapped_column(Text)  # the last attempt's failure, when it failed
+    created_at: Mapped[datetime]
+    updated_at: Mapped[datetime]
+    delivered_at: Mapped[datetime | None]
+
+    __table_args__ = (
+        CheckConstraint("status IN ('pending', 'delivered', 'failed')", name="status"),
+        CheckConstraint("attempts >= 0", name="attempts"),
+        Index("ix_webhook_deliveries_status_next_attempt_at", "status", "next_attempt_at"),  # claiming due ones
+        Index("ix_webhook_deliveries_job_id_created_at", "job_id", "created_at"),  # a job's deliveries
+    )
+
+
 # ---- the values the store hands out (plain snapshots: no session, safe to pass between threads) ----
 
 @dataclasses.dataclass(frozen=True)
@@ -216,6 +252,31 @@ class JobEvent:
     @classmethod
     def of(cls, record: JobEventRecord) -> JobEvent:
         return cls(record.id, record.job_id, EventKind(record.kind), record.data, record.created_at)
+
+
+@dataclasses.dataclass(frozen=True)
+class WebhookDelivery:
+    """A webhook message and how its delivery went (``attempts`` counts the attempts started)."""
+
+    id: str
+    job_id: str
+    event: str
+    url: str
+    payload: dict[str, Any]
+    status: DeliveryStatus
+    attempts: int
+    next_attempt_at: datetime | None
+    last_status: int | None
+    last_error: str | None
+    created_at: datetime
+    updated_at: datetime
+    delivered_at: datetime | None
+
+    @classmethod
+    def of(cls, record: WebhookDeliveryRecord) -> WebhookDelivery:
+        values = {f.name: getattr(record, f.name) for f in dataclasses.fields(cls)}
+        values["status"] = DeliveryStatus(record.status)
+        return cls(**values)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -14,6 +14,12 @@ late but not yet swept still owns its job; one whose job was swept, finished or 
 must stop at once. Every state change is recorded as a ``state`` event and every progress report as a
 ``progress`` event (:meth:`JobStore.events` replays them in order).
 
+Webhooks: a job whose spec has a ``webhook_url`` gets a ``webhook_deliveries`` row for every state change after
+its submission (running, queued again, succeeded, failed, cancelled), written in the state change's own
+transaction, so no state change is ever without its message and none is recorded twice. The message id is
+``msg_<job id>_<state event id>``. :mod:`service.webhooks` claims due rows (:meth:`JobStore.claim_deliveries`, the
+same exclusive claim as jobs), sends them and records the outcome (:meth:`JobStore.record_attempt`).
+
 Claiming is exclusive on both backends: PostgreSQL takes the oldest queued row with ``SELECT ... FOR UPDATE SKIP
 LOCKED``; SQLite runs every write in a ``BEGIN IMMEDIATE`` transaction (one writer at a time, waiting up to the
 busy timeout). Lease times are the clock of the process that calls the store (keep worker clocks in sync).
@@ -46,6 +52,7 @@ from .migrations import migrate
 from .models import (
     BUSY_TIMEOUT_MS,
     TERMINAL,
+    DeliveryStatus,
     EventKind,
     HeartbeatReply,
     Job,
@@ -53,6 +60,8 @@ from .models import (
     JobEventRecord,
     JobRecord,
     JobState,
+    WebhookDelivery,
+    WebhookDeliveryRecord,
     make_engine,
 )
 
@@ -61,6 +70,7 @@ log = logging.getLogger(__name__)
 CHANNEL = "blendsplat_jobs"  # PostgreSQL NOTIFY channel: a job may be claimable (payload: its id)
 POLL_SECONDS = 0.5  # SQLite: how often wait_for_work looks for queued jobs
 MAX_LIST = 500
+MAX_DELIVERY_ERROR = 500  # characters of a failed attempt's reason kept on the delivery
 PROGRESS_FIELDS: dict[str, type] = {
     "iteration": int, "total_iterations": int, "gaussians": int,
     "fraction": float, "eta_seconds": float, "loss": float, "psnr": float,
@@ -224,7 +234,27 @@ class JobStore:
         data = {"state": state.value, "previous": previous, "attempts": record.attempts, **details}
         if record.error and state in TERMINAL:
             data.setdefault("error", record.error)
-        self._event(session, record.id, EventKind.STATE, data, now)
+        event = self._event(session, record.id, EventKind.STATE, data, now)
+        url = record.spec.get("webhook_url") if isinstance(record.spec, dict) else None
+        if isinstance(url, str) and url:
+            session.flush()  # the state event's id names the message
+            self._delivery(session, record, event.id, url, previous, now)
+
+    @staticmethod
+    def _delivery(session: Session, record: JobRecord, event_id: int, url: str, previous: str | None,
+                  now: datetime) -> None:
+        """The webhook message of a state change (Standard Webhooks' payload shape: type, timestamp, data)."""
+        kind = f"job.{record.state}"
+        data: dict[str, Any] = {
+            "job_id": record.id, "state": record.state, "previous": previous, "attempts": record.attempts,
+            "error": record.error if record.state in TERMINAL else None,
+            "result": record.result if record.state == JobState.SUCCEEDED else None,
+            "links": {"self": f"/v1/jobs/{record.id}", "events": f"/v1/jobs/{record.id}/events"}}
+        payload = {"type": kind, "timestamp": now.isoformat(), "data": data}
+        session.add(WebhookDeliveryRecord(
+            id=f"msg_{record.id}_{event_id}", job_id=record.id, event=kind, url=url,
+            payload=json.loads(_canonical(payload, "payload")), status=DeliveryStatus.PENDING.value, attempts=0,
+            next_attempt_at=now, created_at=now, updated_at=now))
 
     def _notify(self, session: Session, job_id: str) -> None:
         """Wake waiting workers when the transaction commits (PostgreSQL NOTIFY; SQLite: see wait_for_work)."""
@@ -509,6 +539,66 @@ class JobStore:
             if not records and session.get(JobRecord, job_id) is None:
                 raise NotFound(f"no job {job_id!r}", field="job_id")
             return [JobEvent.of(r) for r in records]
+
+    # ---- webhook deliveries ----
+
+    def deliveries(self, job_id: str) -> list[WebhookDelivery]:
+        """A job's webhook deliveries, oldest first (none for a job without a ``webhook_url``)."""
+        with self._reads() as session:
+            return [WebhookDelivery.of(r) for r in session.scalars(
+                select(WebhookDeliveryRecord).where(WebhookDeliveryRecord.job_id == job_id)
+                .order_by(WebhookDeliveryRecord.created_at, WebhookDeliveryRecord.id))]
+
+    def claim_deliveries(self, limit: int, lease_seconds: float, now: datetime | None = None) -> list[WebhookDelivery]:
+        """Take up to ``limit`` pending deliveries that are due (oldest first): each gets one more attempt counted
+        and is held by the caller for ``lease_seconds`` (its ``next_attempt_at`` moves there), so no other
+        dispatcher sends it meanwhile; one whose sender died is due again when the lease ends. Exclusive on both
+        backends (FOR UPDATE SKIP LOCKED; SQLite: BEGIN IMMEDIATE)."""
+        if isinstance(limit, bool) or not isinstance(limit, int) or not 1 <= limit <= MAX_LIST:
+            raise InvalidArgument(f"1 to {MAX_LIST}, got {limit!r}", field="limit")
+        now = now or _now()
+        with self._write() as session:
+            records = session.scalars(
+                select(WebhookDeliveryRecord)
+                .where(WebhookDeliveryRecord.status == DeliveryStatus.PENDING.value,
+                       WebhookDeliveryRecord.next_attempt_at <= now)
+                .order_by(WebhookDeliveryRecord.next_attempt_at, WebhookDeliveryRecord.id).limit(limit)
+                .with_for_update(skip_locked=True)).all()
+            for record in records:
+                record.attempts += 1
+                record.next_attempt_at = now + timedelta(seconds=float(lease_seconds))
+                record.updated_at = now
+            return [WebhookDelivery.of(r) for r in records]
+
+    def record_attempt(self, delivery_id: str, attempt: int, *, delivered: bool, status: int | None = None,
+                       error: str | None = None, retry_at: datetime | None = None) -> WebhookDelivery | None:
+        """The outcome of attempt number ``attempt`` of a claimed delivery: ``delivered`` (a 2xx: it is never sent
+        again), else pending again at ``retry_at``, or failed for good when ``retry_at`` is None. A failure
+        reported by an attempt that is no longer the latest (its claim ran out and another dispatcher took it) is
+        ignored; a success always counts. The delivery after the call; None when it is gone (job deleted)."""
+        now = _now()
+        with self._write() as session:
+            record = session.scalars(select(WebhookDeliveryRecord).where(WebhookDeliveryRecord.id == delivery_id)
+                                     .with_for_update()).first()
+            if record is None:
+                return None
+            if record.status != DeliveryStatus.PENDING.value or (not delivered and record.attempts != attempt):
+                return WebhookDelivery.of(record)
+            record.last_status = status
+            record.updated_at = now
+            if delivered:
+                record.status = DeliveryStatus.DELIVERED.value
+                record.delivered_at = now
+                record.next_attempt_at = None
+                record.last_error = None
+            else:
+                record.last_error = (error or f"HTTP {status}")[:MAX_DELIVERY_ERROR]
+                if retry_at is None:
+                    record.status = DeliveryStatus.FAILED.value
+                    record.next_attempt_at = None
+                else:
+                    record.next_attempt_at = retry_at
+            return WebhookDelivery.of(record)
 
     # ---- waiting for work ----
 
