@@ -127,6 +127,9 @@ def build_parser() -> argparse.ArgumentParser:
     u.set_defaults(fn=cmd_up)
 
     _add_worker(p.commands)
+    from .jobs_client import add_commands as add_jobs_commands
+
+    add_jobs_commands(p.commands)  # `blendsplat jobs ...`: the training jobs' REST client
 
     b = p.bench_commands.add_parser("stream", help="drive a running service over gRPC: fps and pose-to-frame "
                                                    "latency per stream")

@@ -1,0 +1,853 @@
+"""`blendsplat jobs`: a command-line client of the training jobs' REST API (service/jobs_api.py).
+
+Two layers:
+
+- :class:`JobsClient`, an HTTP client with one method per API call (upload, create, list, get, cancel, delete, the
+  event stream) and :meth:`JobsClient.follow`, which follows a job until it ends: by its server-sent events
+  (``GET /v1/jobs/{id}/events``, resumed with ``Last-Event-ID`` after a dropped connection) or, on a server without
+  them (404 for the route, not for the job) or when the stream keeps failing, by polling the job every second.
+  Errors are typed: :class:`ApiError` (an HTTP error answer, with the server's code, message and field),
+  :class:`ConnectionFailed`, :class:`EventsUnavailable`, :class:`WaitTimeout`.
+- the ``cmd_*`` functions and :func:`add_commands`, which registers ``jobs submit | list | show | cancel | wait |
+  delete`` on the ``blendsplat`` parser (service/cli.py).
+
+Conventions (docs/architecture.md): results go to stdout (the job's JSON with ``--json``, else a short summary);
+progress bars (tqdm, only when stderr is a terminal), state changes and errors go to stderr. Exit codes: 0
+success (``submit --wait`` / ``wait``: the job succeeded), 1 the job failed or was cancelled, 2 a usage,
+connection, HTTP or timeout error, 130 waiting interrupted by Ctrl-C (the job goes on). The API key is sent as
+``Authorization: Bearer KEY`` and never printed nor put in a URL.
+
+Uploads are streamed: a dataset folder is packed into a temporary .tar.gz on disk, and the archive is sent as a
+multipart/form-data body built as a generator (head, the file in 1 MiB reads, tail) with its Content-Length, so
+the file is never held in memory.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import logging
+import math
+import os
+import secrets
+import sys
+import tarfile
+import tempfile
+import time
+import uuid
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+from urllib.parse import quote, urlsplit
+
+import httpx
+
+DEFAULT_SERVER = "http://127.0.0.1:8080"
+SERVER_ENV, KEY_ENV = "BLENDSPLAT_SERVER", "BLENDSPLAT_API_KEY"
+TERMINAL = frozenset({"succeeded", "failed", "cancelled"})
+STATES = ("queued", "running", "succeeded", "failed", "cancelled")
+ARCHIVE_SUFFIXES = (".tar.gz", ".tgz", ".tar", ".zip")
+CHUNK = 1 << 20  # bytes read from the archive per piece of the upload body
+POLL_SECONDS = 1.0
+STREAM_FAILURES = 3  # consecutive event-stream failures (no event received) before falling back to polling
+EXIT_OK, EXIT_JOB, EXIT_ERROR, EXIT_INTERRUPTED = 0, 1, 2, 130
+
+log = logging.getLogger(__name__)
+
+
+# ------------------------------------------------------------------------------------------------------ errors
+class ClientError(Exception):
+    """Anything that stops a command before it has an answer (exit code 2)."""
+
+
+class ConnectionFailed(ClientError):
+    """The server could not be reached, or the connection broke."""
+
+
+class ApiError(ClientError):
+    """An HTTP error answer: the status and the server's ``{"error": {"code", "message", "field"}}``."""
+
+    def __init__(self, status: int, code: str, message: str, field: str = ""):
+        self.status, self.code, self.message, self.field = status, code, message, field
+        super().__init__(str(self))
+
+    def __str__(self) -> str:
+        where = f" (field {self.field})" if self.field else ""
+        return f"{self.status} {self.code.lower()}: {self.message}{where}"
+
+    @classmethod
+    def of(cls, response: httpx.Response) -> ApiError:
+        try:
+            body = json.loads(response.read() or b"null")
+        except (ValueError, httpx.HTTPError):
+            body = None
+        error = body.get("error") if isinstance(body, dict) else None
+        if isinstance(error, dict):
+            return cls(response.status_code, str(error.get("code") or response.reason_phrase),
+                       str(error.get("message") or ""), str(error.get("field") or ""))
+        if isinstance(body, dict) and "detail" in body:  # a framework's own answer
+            return cls(response.status_code, response.reason_phrase, str(body["detail"]))
+        text = response.text.strip()[:200] if response.is_stream_consumed else ""
+        return cls(response.status_code, response.reason_phrase.replace(" ", "_") or "error",
+                   text or "the server gave no reason")
+
+
+class EventsUnavailable(ClientError):
+    """The server has no event stream for jobs (its route answers 404, or not with text/event-stream)."""
+
+
+class StreamBroken(ClientError):
+    """The event stream failed (a dropped connection, a 5xx) or was idle past the read timeout (``idle``): worth
+    a reconnect."""
+
+    def __init__(self, message: str, idle: bool = False):
+        super().__init__(message)
+        self.idle = idle
+
+
+class WaitTimeout(ClientError):
+    """``--timeout`` passed before the job ended."""
+
+
+# ------------------------------------------------------------------------------------------------------ client
+@dataclass
+class Event:
+    """One server-sent event: ``id``, ``event`` (progress, state, preview, log) and its JSON ``data``."""
+
+    event: str
+    data: dict[str, Any] = field(default_factory=dict)
+    id: str | None = None
+
+
+def server_url(text: str) -> str:
+    """The server's base URL, checked: http(s)://host[:port][/prefix], no credentials, no query."""
+    parts = urlsplit(text.strip())
+    if parts.scheme not in ("http", "https") or not parts.hostname:
+        raise ClientError(f"--server must be an http:// or https:// URL, got {text!r}")
+    if parts.username or parts.password or parts.query or parts.fragment:
+        raise ClientError("--server must not carry credentials, a query or a fragment (the key goes in --api-key)")
+    return text.strip().rstrip("/")
+
+
+class JobsClient:
+    """The training jobs' REST API over HTTP: one method per call. Errors: :class:`ApiError` (an error answer),
+    :class:`ConnectionFailed` (no answer). ``transport`` replaces the network (tests)."""
+
+    def __init__(self, server: str = DEFAULT_SERVER, api_key: str | None = None, *, timeout: float = 30.0,
+                 transport: httpx.BaseTransport | None = None):
+        self.server = server_url(server)
+        headers = {"User-Agent": "blendsplat-jobs", "Accept": "application/json"}
+        if api_key:
+            key = api_key.strip()
+            if not key or not key.isascii() or not key.isprintable() or " " in key:
+                raise ClientError("the API key must be one word of printable ASCII")
+            headers["Authorization"] = f"Bearer {key}"
+        self.http = httpx.Client(base_url=self.server, headers=headers, transport=transport,
+                                 timeout=httpx.Timeout(timeout, connect=min(timeout, 10.0)))
+
+    def __enter__(self) -> JobsClient:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        self.http.close()
+
+    # ------------------------------------------------------------------------------------------- plumbing
+    def url(self, path: str) -> str:
+        """An absolute URL of a path the API returned (links)."""
+        return self.server + path if path.startswith("/") else path
+
+    def _failed(self, exc: httpx.TransportError) -> ConnectionFailed:
+        reason = str(exc) or type(exc).__name__
+        if isinstance(exc, httpx.ConnectError):
+            return ConnectionFailed(f"cannot reach the server at {self.server} ({reason}); is it running "
+                                    f"(`blendsplat up`)? Point at another with --server or {SERVER_ENV}")
+        if isinstance(exc, httpx.TimeoutException):
+            return ConnectionFailed(f"the server at {self.server} did not answer in time ({type(exc).__name__})")
+        return ConnectionFailed(f"the connection to {self.server} failed ({reason})")
+
+    def _request(self, method: str, path: str, **kwargs) -> httpx.Response:
+        try:
+            response = self.http.request(method, path, **kwargs)
+        except httpx.TransportError as exc:
+            raise self._failed(exc) from None
+        if response.status_code >= 400:
+            raise ApiError.of(response)
+        return response
+
+    @staticmethod
+    def _json(response: httpx.Response) -> dict[str, Any]:
+        try:
+            body = response.json()
+        except ValueError:
+            raise ClientError(f"the server answered {response.status_code} with no JSON (is {response.url} a "
+                              "Blendsplat service?)") from None
+        if not isinstance(body, dict):
+            raise ClientError("the server answered with an unexpected JSON value")
+        return body
+
+    @staticmethod
+    def _job_path(job_id: str) -> str:
+        if not job_id or not job_id.isprintable():
+            raise ClientError(f"not a job id: {job_id!r}")
+        return f"/v1/jobs/{quote(job_id, safe='')}"
+
+    # ------------------------------------------------------------------------------------------- the calls
+    def upload(self, archive: str | os.PathLike, *, filename: str | None = None,
+               progress: Callable[[int], None] | None = None) -> dict[str, Any]:
+        """``POST /v1/uploads``: stream an archive as the multipart field ``file``; the upload (``upload_id``,
+        frames, ...). ``progress(n)`` is called with the bytes of each piece sent."""
+        path = Path(archive)
+        size = path.stat().st_size
+        name = (filename or path.name).replace('"', "_").replace("\r", "_").replace("\n", "_")
+        boundary = f"blendsplat-{secrets.token_hex(16)}"
+        head = (f'--{boundary}\r\nContent-Disposition: form-data; name="file"; filename="{name}"\r\n'
+                "Content-Type: application/octet-stream\r\n\r\n").encode()
+        tail = f"\r\n--{boundary}--\r\n".encode()
+
+        def body() -> Iterator[bytes]:
+            yield head
+            left = size
+            with open(path, "rb") as f:
+                while left > 0:
+                    chunk = f.read(min(CHUNK, left))
+                    if not chunk:
+                        raise ClientError(f"{path} shrank while it was uploaded")
+                    left -= len(chunk)
+                    if progress is not None:
+                        progress(len(chunk))
+                    yield chunk
+            yield tail
+
+        headers = {"Content-Type": f"multipart/form-data; boundary={boundary}",
+                   "Content-Length": str(len(head) + size + len(tail))}
+        # the server checks and validates the whole dataset before it answers: allow it time
+        timeout = httpx.Timeout(self.http.timeout.connect, read=max(600.0, self.http.timeout.read or 0),
+                                write=self.http.timeout.write, connect=self.http.timeout.connect)
+        return self._json(self._request("POST", "/v1/uploads", content=body(), headers=headers, timeout=timeout))
+
+    def create_job(self, spec: dict[str, Any], idempotency_key: str | None = None) -> dict[str, Any]:
+        """``POST /v1/jobs``: the job (201 created, or 200: the job an earlier request with this key created).
+        With a key, a request that got no answer (a connection error) is sent once more: the server returns the
+        job the first one created rather than a second job."""
+        headers = {"Idempotency-Key": idempotency_key} if idempotency_key else {}
+        try:
+            return self._json(self._request("POST", "/v1/jobs", json=spec, headers=headers))
+        except ConnectionFailed as exc:
+            if not idempotency_key:
+                raise
+            log.warning("creating the job got no answer (%s); trying once more with the same Idempotency-Key", exc)
+            time.sleep(0.5)
+            return self._json(self._request("POST", "/v1/jobs", json=spec, headers=headers))
+
+    def list_jobs(self, state: str | None = None, limit: int = 50, cursor: str | None = None) -> dict[str, Any]:
+        """``GET /v1/jobs``: one page, newest first: ``{"jobs": [...], "next_cursor"}``."""
+        params: dict[str, Any] = {"limit": limit}
+        if state:
+            params["state"] = state
+        if cursor:
+            params["cursor"] = cursor
+        return self._json(self._request("GET", "/v1/jobs", params=params))
+
+    def get_job(self, job_id: str) -> dict[str, Any]:
+        """``GET /v1/jobs/{id}``."""
+        return self._json(self._request("GET", self._job_path(job_id)))
+
+    def cancel_job(self, job_id: str) -> dict[str, Any]:
+        """``POST /v1/jobs/{id}/cancel``: the job (cancelled at once when queued; a running one stops before its
+        next iteration; a finished one is left as it is)."""
+        return self._json(self._request("POST", self._job_path(job_id) + "/cancel"))
+
+    def delete_job(self, job_id: str) -> None:
+        """``DELETE /v1/jobs/{id}``: the row, its events and its work folder."""
+        self._request("DELETE", self._job_path(job_id))
+
+    def events(self, job_id: str, last_event_id: str | None = None, *,
+               read_timeout: float = 60.0) -> Iterator[Event]:
+        """``GET /v1/jobs/{id}/events``: the job's server-sent events as they come (after ``last_event_id``), until
+        the server closes the stream. Raises :class:`EventsUnavailable` when the server has no such route (a job
+        that does not exist is :class:`ApiError` 404), :class:`StreamBroken` when the stream fails."""
+        path = self._job_path(job_id) + "/events"
+        headers = {"Accept": "text/event-stream", "Cache-Control": "no-cache"}
+        if last_event_id is not None:
+            headers["Last-Event-ID"] = last_event_id
+        timeout = httpx.Timeout(self.http.timeout.connect, read=read_timeout)
+        try:
+            with self.http.stream("GET", path, headers=headers, timeout=timeout) as response:
+                if response.status_code == 404:
+                    error = ApiError.of(response)
+                    self.get_job(job_id)  # ApiError 404 when it is the job that is missing
+                    raise EventsUnavailable(f"the server has no job event stream ({error})")
+                if response.status_code in (405, 501):
+                    raise EventsUnavailable(f"the server has no job event stream ({ApiError.of(response)})")
+                if response.status_code >= 500 or response.status_code == 429:
+                    raise StreamBroken(str(ApiError.of(response)))
+                if response.status_code >= 400:
+                    raise ApiError.of(response)
+                kind = response.headers.get("content-type", "").split(";")[0].strip().lower()
+                if kind != "text/event-stream":
+                    raise EventsUnavailable(f"the event route answered {kind or 'no content type'}, not an event "
+                                            "stream")
+                yield from parse_events(response.iter_lines())
+        except httpx.TransportError as exc:
+            if isinstance(exc, httpx.ConnectError):
+                raise self._failed(exc) from None
+            raise StreamBroken(str(exc) or type(exc).__name__, idle=isinstance(exc, httpx.ReadTimeout)) from None
+
+    # ------------------------------------------------------------------------------------------- following
+    def follow(self, job_id: str, *, on_event: Callable[[Event], None] | None = None,
+               on_job: Callable[[dict[str, Any]], None] | None = None, timeout: float | None = None,
+               use_events: bool = True, poll_seconds: float = POLL_SECONDS,
+               sleep: Callable[[float], None] = time.sleep) -> dict[str, Any]:
+        """Follow a job until it ends; the job as it ended. Events go to ``on_event`` while the stream serves
+        them; every job read (the first one, after each stream, each poll) to ``on_job``. Raises
+        :class:`WaitTimeout` after ``timeout`` seconds; Ctrl-C (KeyboardInterrupt) passes through."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+
+        def left() -> float:
+            if deadline is None:
+                return math.inf
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                raise WaitTimeout(f"timed out after {timeout:g} s waiting for job {job_id}")
+            return remaining
+
+        job = self.get_job(job_id)
+        if on_job is not None:
+            on_job(job)
+        if job.get("state") in TERMINAL:
+            return job
+        last_id: str | None = None
+        failures = 0
+        while use_events:
+            received = ended = False
+            try:
+                with contextlib.closing(self.events(job_id, last_id, read_timeout=min(60.0, left() + 0.5))) as events:
+                    for event in events:
+                        received = True
+                        if event.id is not None:
+                            last_id = event.id
+                        if on_event is not None:
+                            on_event(event)
+                        if event.event == "state" and event.data.get("state") in TERMINAL:
+                            ended = True
+                            break
+                        left()
+            except EventsUnavailable as exc:
+                log.debug("following job %s by polling: %s", job_id, exc)
+                break
+            except StreamBroken as exc:
+                if exc.idle:  # nothing to say for a while: ask again (not a failure)
+                    failures = 0 if received else failures
+                else:
+                    failures = 1 if received else failures + 1
+                    log.debug("job %s: the event stream failed (%s)", job_id, exc)
+            except ConnectionFailed as exc:
+                failures = failures + 1
+                log.debug("job %s: the event stream failed (%s)", job_id, exc)
+            else:
+                failures = 0 if ended or received else failures + 1
+            job = self.get_job(job_id)  # the whole job, and whether it ended while the stream was down
+            if on_job is not None:
+                on_job(job)
+            if job.get("state") in TERMINAL:
+                return job
+            if failures >= STREAM_FAILURES:
+                log.warning("job %s: the event stream failed %d times in a row; polling instead", job_id, failures)
+                break
+            if failures:
+                sleep(min(left(), 0.5 * 2 ** (failures - 1)))
+        while True:
+            sleep(min(left(), poll_seconds))
+            left()
+            job = self.get_job(job_id)
+            if on_job is not None:
+                on_job(job)
+            if job.get("state") in TERMINAL:
+                return job
+
+
+def parse_events(lines: Iterator[str]) -> Iterator[Event]:
+    """Server-sent events from the stream's lines (the WHATWG event-stream format): ``id:``, ``event:``,
+    ``data:`` (lines joined; one JSON object here), comments and ``retry:`` skipped; a blank line dispatches."""
+    kind, data, event_id = "message", [], None
+    for raw in lines:
+        line = raw.rstrip("\r")
+        if not line:
+            if data:
+                text = "\n".join(data)
+                try:
+                    value = json.loads(text)
+                except ValueError:
+                    value = {"text": text}
+                yield Event(kind, value if isinstance(value, dict) else {"value": value}, event_id)
+            kind, data = "message", []
+            continue
+        if line.startswith(":"):
+            continue
+        name, _, value = line.partition(":")
+        value = value[1:] if value.startswith(" ") else value
+        if name == "data":
+            data.append(value)
+        elif name == "event":
+            kind = value or "message"
+        elif name == "id" and "\0" not in value:
+            event_id = value  # the last event id persists until another one replaces it
+
+
+# ---------------------------------------------------------------------------------------------- the commands
+def pack_dataset(folder: Path, out: Path) -> None:
+    """Pack a tracked-video dataset folder (docs/tracked-video-format.md) into a .tar.gz on disk, the dataset in
+    one top-level folder. Checks it first (the manifest and tracking fully, the frame and mask files for
+    existence; the server decodes every one): ClientError naming the problem."""
+    from render_core.data.portable import read_dataset
+    from render_core.errors import DatasetError
+
+    if not (folder / "dataset.json").is_file():
+        raise ClientError(f"{folder} is not a tracked-video dataset: it has no dataset.json "
+                          "(docs/tracked-video-format.md; `blendsplat data convert` makes one)")
+    try:
+        read_dataset(folder)
+    except DatasetError as exc:
+        raise ClientError(f"{folder} is not a valid tracked-video dataset: {exc}") from None
+    with tarfile.open(out, "w:gz", compresslevel=3, dereference=True) as tar:  # frames are PNG: little to gain
+        tar.add(folder, arcname=folder.resolve().name or "dataset",
+                filter=lambda m: m if (m.isfile() or m.isdir()) else None)
+
+
+class Watch:
+    """What a command shows on stderr while it follows a job: one line per state change and, when stderr is a
+    terminal (or ``bars`` is set), a tqdm bar of iterations with the loss, PSNR and the server's ETA."""
+
+    def __init__(self, job_id: str, bars: bool | None = None, stream=None):
+        self.job_id, self.stream = job_id, stream or sys.stderr
+        self.bars = self.stream.isatty() if bars is None else bars
+        self.bar = None
+        self.state: str | None = None
+        self.events = self.polls = 0
+
+    def _say(self, text: str) -> None:
+        if self.bar is not None:
+            self.bar.write(text, file=self.stream)
+        else:
+            print(text, file=self.stream, flush=True)
+
+    def _state(self, state: str | None, error: str | None = None) -> None:
+        if state and state != self.state:
+            self.state = state
+            self._say(f"job {self.job_id}: {state}" + (f" ({error})" if error else ""))
+
+    def _progress(self, p: dict[str, Any]) -> None:
+        total, done = p.get("total_iterations"), p.get("iteration")
+        if not self.bars or not isinstance(total, int) or total < 1 or not isinstance(done, int):
+            return
+        if self.bar is None:
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=total, initial=0, desc="train", unit="it", file=self.stream, dynamic_ncols=True,
+                            bar_format="{desc}: {percentage:3.0f}%|{bar}| {n_fmt}/{total_fmt} [{elapsed}{postfix}]")
+        if self.bar.total != total:
+            self.bar.total = total
+        postfix = {}
+        if isinstance(p.get("loss"), int | float):
+            postfix["loss"] = f"{p['loss']:.4f}"
+        if isinstance(p.get("psnr"), int | float):
+            postfix["psnr"] = f"{p['psnr']:.2f}"
+        if isinstance(p.get("eta_seconds"), int | float):
+            postfix["eta"] = _duration(p["eta_seconds"])
+        if isinstance(p.get("gaussians"), int):
+            postfix["gaussians"] = str(p["gaussians"])
+        self.bar.set_postfix(postfix, refresh=False)
+        self.bar.update(max(0, min(done, total)) - self.bar.n)
+
+    def on_event(self, event: Event) -> None:
+        self.events += 1
+        if event.event == "progress":
+            self._progress(event.data)
+        elif event.event == "state":
+            self._state(event.data.get("state"), event.data.get("error"))
+        elif event.event == "log" and isinstance(event.data.get("message"), str):
+            self._say(f"job {self.job_id}: {event.data['message']}")
+
+    def on_job(self, job: dict[str, Any]) -> None:
+        self.polls += 1
+        if isinstance(job.get("progress"), dict):
+            self._progress(job["progress"])
+        self._state(job.get("state"))
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+            self.bar = None
+
+
+def _duration(seconds: float) -> str:
+    s = max(0, round(seconds))
+    return f"{s // 3600}:{s // 60 % 60:02d}:{s % 60:02d}" if s >= 3600 else f"{s // 60:02d}:{s % 60:02d}"
+
+
+class UploadBar:
+    """Bytes sent of an upload: a tqdm bar on stderr when it is a terminal."""
+
+    def __init__(self, total: int, name: str, stream=None):
+        self.stream = stream or sys.stderr
+        self.bar = None
+        if self.stream.isatty():
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=total, desc=f"upload {name}", unit="B", unit_scale=True, unit_divisor=1024,
+                            file=self.stream, dynamic_ncols=True)
+
+    def __call__(self, n: int) -> None:
+        if self.bar is not None:
+            self.bar.update(n)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
+def _client(args: argparse.Namespace) -> JobsClient:
+    server = args.server or os.environ.get(SERVER_ENV) or DEFAULT_SERVER
+    key = args.api_key if args.api_key is not None else os.environ.get(KEY_ENV)
+    return JobsClient(server, key or None)
+
+
+def _print_json(obj: Any) -> None:
+    sys.stdout.write(json.dumps(obj, indent=2) + "\n")
+    sys.stdout.flush()
+
+
+def _summary(client: JobsClient, job: dict[str, Any]) -> str:
+    """A few lines about a job for people: id, state, avatar, progress, PSNR, error, links."""
+    spec = job.get("spec") or {}
+    result = job.get("result") or {}
+    progress = job.get("progress") or {}
+    links = job.get("links") or {}
+    lines = [f"job {job.get('id')}: {job.get('state')}"
+             + (" (cancel requested)" if job.get("cancel_requested") and job.get("state") not in TERMINAL else "")]
+    avatar = result.get("avatar_id") or spec.get("avatar_id")
+    if avatar:
+        lines.append(f"  avatar        {avatar}" + (f"  {client.url(links['avatar'])}" if links.get("avatar") else ""))
+    lines.append(f"  preset        {spec.get('preset', '?')}, {spec.get('iterations') or 'default'} iterations")
+    if progress.get("iteration") is not None:
+        text = f"  progress      {progress.get('iteration')}/{progress.get('total_iterations') or '?'}"
+        if isinstance(progress.get("loss"), int | float):
+            text += f", loss {progress['loss']:.4f}"
+        if isinstance(progress.get("psnr"), int | float):
+            text += f", PSNR {progress['psnr']:.2f} dB"
+        if isinstance(progress.get("eta_seconds"), int | float) and job.get("state") == "running":
+            text += f", ETA {_duration(progress['eta_seconds'])}"
+        lines.append(text)
+    evaluation = result.get("evaluation") or {}
+    if isinstance(evaluation.get("psnr"), int | float):
+        text = f"  held-out      PSNR {evaluation['psnr']:.2f} dB"
+        if isinstance(evaluation.get("ssim"), int | float):
+            text += f", SSIM {evaluation['ssim']:.4f}"
+        if isinstance(result.get("seconds"), int | float):
+            text += f" ({result['seconds']:.1f} s of training)"
+        lines.append(text)
+    if job.get("error"):
+        lines.append(f"  error         {job['error']}")
+    if links.get("self"):
+        lines.append(f"  job           {client.url(links['self'])}")
+    for name in ("report", "contact-sheet"):
+        if name in (links.get("artefacts") or {}):
+            lines.append(f"  {name:<13} {client.url(links['artefacts'][name])}")
+    return "\n".join(lines)
+
+
+def _show(client: JobsClient, job: dict[str, Any], as_json: bool) -> None:
+    if as_json:
+        _print_json(job)
+    else:
+        sys.stdout.write(_summary(client, job) + "\n")
+        sys.stdout.flush()
+
+
+def _resume_hint(args: argparse.Namespace, job_id: str) -> str:
+    extra = f" --server {args.server}" if args.server else ""
+    return f"blendsplat jobs wait {job_id}{extra}"
+
+
+def _ended(job: dict[str, Any], want: str = "succeeded") -> int:
+    """The exit code of a job that ended: 0 when it ended ``want``, else 1 (why on stderr: the job's error)."""
+    state = job.get("state")
+    if state == want:
+        return EXIT_OK
+    if want == "cancelled":
+        print(f"blendsplat: error: job {job.get('id')} ended {state} before the cancel took effect",
+              file=sys.stderr, flush=True)
+    else:
+        reason = job.get("error") or ("cancel requested" if state == "cancelled" else "no reason given")
+        print(f"blendsplat: error: job {job.get('id')} {state}: {reason}", file=sys.stderr, flush=True)
+    return EXIT_JOB
+
+
+def _wait(client: JobsClient, args: argparse.Namespace, job_id: str, want: str = "succeeded") -> int:
+    """Follow a job to its end, show it, and return the exit code (0: it ended ``want``)."""
+    watch = Watch(job_id)
+    try:
+        job = client.follow(job_id, on_event=watch.on_event, on_job=watch.on_job,
+                            timeout=getattr(args, "timeout", None))
+    except KeyboardInterrupt:
+        watch.close()
+        state = f" ({watch.state})" if watch.state else ""
+        print(f"\nstopped waiting; job {job_id} goes on{state}. Resume with: {_resume_hint(args, job_id)}",
+              file=sys.stderr, flush=True)
+        return EXIT_INTERRUPTED
+    except WaitTimeout as exc:
+        watch.close()
+        raise WaitTimeout(f"{exc}; it goes on ({watch.state or 'not finished'}). Resume with: "
+                          f"{_resume_hint(args, job_id)}") from None
+    finally:
+        watch.close()
+    _show(client, job, args.json)
+    return _ended(job, want)
+
+
+def cmd_submit(args: argparse.Namespace) -> int:
+    source: Path = args.source
+    spec: dict[str, Any] = {"preset": args.preset, "avatar_id": args.avatar_id or _default_avatar_id(source)}
+    for name in ("iterations", "resolution", "seed", "webhook_url"):
+        if getattr(args, name) is not None:
+            spec[name] = getattr(args, name)
+    with _client(args) as client, tempfile.TemporaryDirectory(prefix="blendsplat-jobs-") as tmp:
+        if source.is_dir():
+            archive = Path(tmp) / f"{source.resolve().name or 'dataset'}.tar.gz"
+            print(f"packing {source} ...", file=sys.stderr, flush=True)
+            pack_dataset(source, archive)
+        elif source.is_file():
+            if not source.name.lower().endswith(ARCHIVE_SUFFIXES):
+                raise ClientError(f"{source} is neither a dataset folder nor a .tar.gz, .tar or .zip archive")
+            archive = source
+        else:
+            raise ClientError(f"{source}: no such dataset folder or archive")
+        bar = UploadBar(archive.stat().st_size, archive.name)
+        try:
+            upload = client.upload(archive, progress=bar)
+        finally:
+            bar.close()
+        upload_id = upload.get("upload_id")
+        if not isinstance(upload_id, str):
+            raise ClientError("the server's upload answer has no upload_id")
+        print(f"uploaded {upload.get('frames', '?')} frames of {upload.get('width', '?')}x{upload.get('height', '?')}"
+              f" as {upload_id}", file=sys.stderr, flush=True)
+        job = client.create_job({"upload_id": upload_id, **spec}, idempotency_key=str(uuid.uuid4()))
+        job_id = job.get("id")
+        if not isinstance(job_id, str):
+            raise ClientError("the server's job answer has no id")
+        if not args.wait:
+            _show(client, job, args.json)
+            return EXIT_OK
+        print(f"job {job_id} submitted; following it (Ctrl-C stops waiting, not the job)", file=sys.stderr,
+              flush=True)
+        return _wait(client, args, job_id)
+
+
+def _default_avatar_id(source: Path) -> str:
+    """The avatar id from the dataset's name: letters, digits, ``-`` and ``_`` (what the bundle store accepts)."""
+    name = source.name
+    for suffix in ARCHIVE_SUFFIXES:
+        if name.lower().endswith(suffix):
+            name = name[: -len(suffix)]
+            break
+    cleaned = "".join(c if c.isascii() and (c.isalnum() or c in "-_") else "-" for c in name).strip("-_")
+    return cleaned[:64] or "avatar"
+
+
+def cmd_list(args: argparse.Namespace) -> int:
+    with _client(args) as client:
+        jobs: list[dict[str, Any]] = []
+        cursor = None
+        while len(jobs) < args.limit:
+            page = client.list_jobs(args.state, min(500, args.limit - len(jobs)), cursor)
+            jobs += page.get("jobs") or []
+            cursor = page.get("next_cursor")
+            if not cursor:
+                break
+        if args.json:
+            _print_json({"jobs": jobs, "next_cursor": cursor})
+            return EXIT_OK
+        if not jobs:
+            sys.stdout.write("no jobs\n" if not args.state else f"no {args.state} jobs\n")
+            return EXIT_OK
+        rows = [("ID", "STATE", "PROGRESS", "AVATAR", "PSNR", "CREATED")]
+        for job in jobs:
+            p = job.get("progress") or {}
+            done = (f"{p.get('iteration') or 0}/{p.get('total_iterations') or '?'}"
+                    if p.get("total_iterations") else "")
+            psnr = p.get("psnr")
+            rows.append((str(job.get("id")), str(job.get("state")), done,
+                         str((job.get("spec") or {}).get("avatar_id", "")),
+                         f"{psnr:.2f}" if isinstance(psnr, int | float) else "",
+                         str(job.get("created_at", ""))[:19].replace("T", " ")))
+        widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
+        for r in rows:
+            sys.stdout.write("  ".join(v.ljust(w) for v, w in zip(r, widths, strict=True)).rstrip() + "\n")
+        if cursor:
+            sys.stdout.write(f"(more: --limit {args.limit + 50})\n")
+        return EXIT_OK
+
+
+def cmd_show(args: argparse.Namespace) -> int:
+    with _client(args) as client:
+        _show(client, client.get_job(args.id), args.json)
+        return EXIT_OK
+
+
+def cmd_cancel(args: argparse.Namespace) -> int:
+    with _client(args) as client:
+        job = client.cancel_job(args.id)
+        state = job.get("state")
+        if args.wait and state not in TERMINAL:
+            print(f"job {args.id}: cancel requested; it stops before its next iteration", file=sys.stderr,
+                  flush=True)
+            return _wait(client, args, args.id, want="cancelled")
+        _show(client, job, args.json)
+        if args.wait:
+            return _ended(job, want="cancelled")
+        if state in TERMINAL and state != "cancelled":
+            print(f"job {args.id} had already {state}: nothing to cancel", file=sys.stderr, flush=True)
+        return EXIT_OK
+
+
+def cmd_wait(args: argparse.Namespace) -> int:
+    with _client(args) as client:
+        return _wait(client, args, args.id)
+
+
+def cmd_delete(args: argparse.Namespace) -> int:
+    with _client(args) as client:
+        client.delete_job(args.id)
+        if args.json:
+            _print_json({"id": args.id, "deleted": True})
+        else:
+            sys.stdout.write(f"deleted job {args.id}\n")
+        return EXIT_OK
+
+
+def _run(fn: Callable[[argparse.Namespace], int]) -> Callable[[argparse.Namespace], int]:
+    """A command with the client's error handling: ClientError -> its message on stderr, exit 2."""
+
+    def run(args: argparse.Namespace) -> int:
+        if not getattr(args, "verbose", False):
+            logging.getLogger("httpx").setLevel(logging.WARNING)  # no line per request
+            logging.getLogger("httpcore").setLevel(logging.WARNING)
+        try:
+            return fn(args)
+        except ClientError as exc:
+            print(f"blendsplat: error: {exc}", file=sys.stderr, flush=True)
+            return EXIT_ERROR
+        except KeyboardInterrupt:
+            print("\nblendsplat: interrupted", file=sys.stderr, flush=True)
+            return EXIT_INTERRUPTED
+
+    run.__name__ = fn.__name__
+    return run
+
+
+def _positive(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
+
+
+def _seconds(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected seconds, got {text!r}") from None
+    if not value > 0 or not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"must be a positive number of seconds, got {text!r}")
+    return value
+
+
+EPILOG = ("exit status: 0 success (submit --wait, wait: the job succeeded), 1 the job failed or was cancelled, "
+          "2 a usage, connection, HTTP or timeout error, 130 Ctrl-C while waiting (the job goes on)")
+
+
+def add_commands(commands) -> None:
+    """Register ``blendsplat jobs ...`` on the ``blendsplat`` parser's subcommands."""
+    common = argparse.ArgumentParser(add_help=False)
+    c = common.add_argument_group("common options")
+    c.add_argument("--server", default=None, metavar="URL",
+                   help=f"the service's base URL (default: ${SERVER_ENV}, else {DEFAULT_SERVER})")
+    c.add_argument("--api-key", default=None, metavar="KEY",
+                   help=f"API key, sent as 'Authorization: Bearer KEY' (default: ${KEY_ENV})")
+    c.add_argument("--json", action="store_true", help="print the JSON result (the job: with id and state) on "
+                                                       "stdout")
+
+    jobs = commands.add_parser("jobs", help="training jobs on a Blendsplat service: submit, list, show, cancel, "
+                                            "wait, delete",
+                               description="A client of the training jobs' REST API (/v1/uploads, /v1/jobs). "
+                                           "Results go to stdout; progress bars (when stderr is a terminal), state "
+                                           "changes and errors to stderr.", epilog=EPILOG)
+    sub = jobs.add_subparsers(dest="jobs_command", required=True, metavar="COMMAND")
+
+    def waiting(p: argparse.ArgumentParser) -> None:
+        p.add_argument("--timeout", type=_seconds, default=None, metavar="S",
+                       help="give up waiting after S seconds (exit 2; the job goes on)")
+
+    s = sub.add_parser("submit", parents=[common], epilog=EPILOG, help="upload a dataset and start a training job",
+                       description="Uploads DATASET (a tracked-video folder, docs/tracked-video-format.md, packed "
+                                   "into a temporary .tar.gz; or a .tar.gz/.tar/.zip archive of one) with a progress "
+                                   "bar, then creates the job (with an Idempotency-Key: a retry after a network "
+                                   "error does not make a second job). With --wait, follows it to its end.")
+    s.add_argument("source", type=Path, metavar="DATASET|ARCHIVE", help="dataset folder or archive")
+    s.add_argument("--preset", choices=("tiny", "paper"), default="tiny",
+                   help="tiny: minutes on a CPU; paper: the paper's 40k iterations (default tiny)")
+    s.add_argument("--iterations", type=_positive, default=None, metavar="N", help="default: the preset's")
+    s.add_argument("--avatar-id", default=None, metavar="ID",
+                   help="the trained avatar's id in the bundle store (default: from the dataset's name)")
+    s.add_argument("--resolution", type=_positive, default=None, metavar="PX",
+                   help="longest image side to train at (default: the dataset's)")
+    s.add_argument("--seed", type=int, default=None, help="training seed (default 0)")
+    s.add_argument("--webhook-url", default=None, metavar="URL",
+                   help="the server calls it on the job's state changes (where the server supports webhooks)")
+    s.add_argument("--wait", action="store_true", help="follow the job until it ends; exit 0 only if it succeeded")
+    waiting(s)
+    s.set_defaults(fn=_run(cmd_submit))
+
+    s = sub.add_parser("list", parents=[common], help="jobs, newest first",
+                       description="Jobs, newest first (a table, or {jobs, next_cursor} with --json).")
+    s.add_argument("--state", choices=STATES, default=None, help="only jobs in this state")
+    s.add_argument("--limit", type=_positive, default=20, metavar="N", help="at most N jobs (default 20)")
+    s.set_defaults(fn=_run(cmd_list))
+
+    s = sub.add_parser("show", parents=[common], help="one job: state, progress, result, links",
+                       description="One job: state, progress, error, result (avatar, held-out PSNR) and links.")
+    s.add_argument("id", help="the job's id (job_...)")
+    s.set_defaults(fn=_run(cmd_show))
+
+    s = sub.add_parser("cancel", parents=[common], epilog=EPILOG, help="cancel a job",
+                       description="A queued job is cancelled at once; a running one stops before its next "
+                                   "iteration. With --wait, follows it until it ends: exit 0 if it ended cancelled, "
+                                   "1 if it ended otherwise first.")
+    s.add_argument("id", help="the job's id (job_...)")
+    s.add_argument("--wait", action="store_true", help="wait until the job has stopped")
+    waiting(s)
+    s.set_defaults(fn=_run(cmd_cancel))
+
+    s = sub.add_parser("wait", parents=[common], epilog=EPILOG, help="follow a job until it ends",
+                       description="Follows a job with a progress bar (iteration, loss, PSNR, ETA) from its "
+                                   "server-sent events, or by polling every second where the server has none. Exit "
+                                   "0 if it succeeded, 1 if it failed or was cancelled. Ctrl-C stops waiting, not "
+                                   "the job.")
+    s.add_argument("id", help="the job's id (job_...)")
+    waiting(s)
+    s.set_defaults(fn=_run(cmd_wait))
+
+    s = sub.add_parser("delete", parents=[common], help="delete a job: its row, events and work folder",
+                       description="Deletes a job whatever its state: its row, its events and its work folder "
+                                   "(a running job stops before its next iteration and commits nothing).")
+    s.add_argument("id", help="the job's id (job_...)")
+    s.set_defaults(fn=_run(cmd_delete))
