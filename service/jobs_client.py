@@ -114,7 +114,8 @@ class WaitTimeout(ClientError):
 # ------------------------------------------------------------------------------------------------------ client
 @dataclass
 class Event:
-    """One server-sent event: ``id``, ``event`` (progress, state, preview, log) and its JSON ``data``."""
+    """One server-sent event: ``id``, ``event`` (progress, state, preview, log; ``end`` closes a finished job's
+    stream) and its JSON ``data``."""
 
     event: str
     data: dict[str, Any] = field(default_factory=dict)
@@ -336,6 +337,11 @@ class JobsClient:
                         if event.event == "state" and event.data.get("state") in TERMINAL:
                             ended = True
                             break
+                        if event.event == "end":  # the server's last word: the job has ended (or is gone)
+                            if event.data.get("state") == "deleted":
+                                raise ClientError(f"job {job_id} was deleted")
+                            ended = True
+                            break
                         left()
             except EventsUnavailable as exc:
                 log.debug("following job %s by polling: %s", job_id, exc)
@@ -428,6 +434,7 @@ class Watch:
         self.bars = self.stream.isatty() if bars is None else bars
         self.bar = None
         self.state: str | None = None
+        self.postfix: dict[str, str] = {}  # the latest of each figure (a report may carry only some)
         self.events = self.polls = 0
 
     def _say(self, text: str) -> None:
@@ -452,13 +459,15 @@ class Watch:
                             bar_format="{desc}: {percentage:3.0f}%|{bar}| {n_fmt}/{total_fmt} [{elapsed}{postfix}]")
         if self.bar.total != total:
             self.bar.total = total
-        postfix = {}
+        postfix = self.postfix
         if isinstance(p.get("loss"), int | float):
             postfix["loss"] = f"{p['loss']:.4f}"
         if isinstance(p.get("psnr"), int | float):
             postfix["psnr"] = f"{p['psnr']:.2f}"
         if isinstance(p.get("eta_seconds"), int | float):
             postfix["eta"] = _duration(p["eta_seconds"])
+        elif done >= total:
+            postfix["eta"] = _duration(0)
         if isinstance(p.get("gaussians"), int):
             postfix["gaussians"] = str(p["gaussians"])
         self.bar.set_postfix(postfix, refresh=False)
