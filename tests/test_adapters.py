@@ -6,6 +6,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
+import pytest
 import torch
 
 from render_core.adapters.fit import fit, rotation_fields
@@ -135,3 +136,209 @@ def test_adapter_fit_drives_target_joints_from_a_source_expression(head):
     _, joints = adapter.apply(np.array([[1.0]]))
     np.testing.assert_allclose(joints[0, 0], [0.2, 0, 0], atol=1e-3)
     assert jaw_open >= 0
+
+
+# ------------------------------------------------------------------------------------------ ONNX and validation
+@pytest.fixture(scope="module")
+def small_fit(head):
+    """A fitted adapter from the open head to its mixed-basis twin (clamped, jaw and eyes driven)."""
+    target, _ = mixed(head, k=12)
+    return fit(head, target)
+
+
+def test_adapter_onnx_model_computes_the_fit(small_fit):
+    from render_core.adapters.onnx_model import OPSET, model_bytes
+    from render_core.adapters.runtime import AdapterRuntime
+    from render_core.adapters.validate import validate_model
+
+    data = model_bytes(small_fit.manifest, small_fit.weights, small_fit.bias)
+    model = validate_model(data, small_fit.manifest)
+    assert [o.version for o in model.opset_import] == [OPSET]
+    x = np.random.default_rng(0).uniform(0, 1, (8, 52)).astype(np.float32) * 3
+    expression, joints, errors = AdapterRuntime(data, small_fit.manifest).run(x)
+    want_e, want_j = small_fit.apply(x)
+    assert small_fit.manifest.target_joint_names == ["jaw", "eye_l", "eye_r"] and joints.shape == (8, 3, 3)
+    np.testing.assert_allclose(expression, want_e, atol=1e-4)
+    np.testing.assert_allclose(joints, want_j, atol=1e-4)
+    assert errors == [None] * 8 and expression.max() <= 3.0
+
+
+def _hostile(small_fit, kind: str) -> bytes:
+    import onnx
+    from onnx import helper
+
+    from render_core.adapters.onnx_model import build_model
+
+    model = build_model(small_fit.manifest, small_fit.weights, small_fit.bias)
+    if kind == "custom_domain":
+        node = model.graph.node[0]
+        node.domain = "evil.ops"
+        node.op_type = "SystemCall"
+        model.opset_import.append(helper.make_opsetid("evil.ops", 1))
+    elif kind == "external_data":
+        t = model.graph.initializer[0]
+        t.ClearField("raw_data")
+        t.data_location = onnx.TensorProto.EXTERNAL
+        for key, value in (("location", "../../../../etc/passwd"), ("offset", "0"), ("length", "4096")):
+            entry = t.external_data.add()
+            entry.key, entry.value = key, value
+    elif kind == "wrong_shapes":
+        model.graph.input[0].type.tensor_type.shape.dim[1].dim_value = 51
+    elif kind == "bad_op":
+        model.graph.node[1].op_type = "Loop"
+    elif kind == "old_opset":
+        model.opset_import[0].version = 7
+    return model.SerializeToString()
+
+
+@pytest.mark.parametrize("kind, field, words", [
+    ("custom_domain", "model.opset_import", "domain 'evil.ops'"),
+    ("external_data", "model.external_data", "external data '../../../../etc/passwd'"),
+    ("wrong_shapes", "model.graph.input", "[B, 52]"),
+    ("bad_op", "model.graph.node", "'Loop' is not allowed"),
+    ("old_opset", "model.opset_import", "opset 7"),
+])
+def test_hostile_adapter_models_are_refused_with_the_reason(small_fit, kind, field, words):
+    from render_core.adapters.manifest import AdapterError
+    from render_core.adapters.validate import validate_model
+
+    with pytest.raises(AdapterError) as e:
+        validate_model(_hostile(small_fit, kind), small_fit.manifest)
+    assert e.value.field == field and words in str(e.value), str(e.value)
+
+
+def test_garbage_oversize_and_mismatched_adapters_are_refused(small_fit):
+    from render_core.adapters.manifest import AdapterError
+    from render_core.adapters.onnx_model import model_bytes
+    from render_core.adapters.validate import validate_model
+
+    data = model_bytes(small_fit.manifest, small_fit.weights)
+    for blob, field in ((b"\x00garbage\xff" * 10, "model"), (b"", "model")):
+        with pytest.raises(AdapterError) as e:
+            validate_model(blob, small_fit.manifest)
+        assert e.value.field == field
+    with pytest.raises(AdapterError) as e:
+        validate_model(data, small_fit.manifest, max_bytes=len(data) - 1)
+    assert e.value.field == "model.size" and "limit" in str(e.value)
+    fewer = replace(small_fit.manifest, target_joint_names=["jaw"])  # the model outputs 3 joints
+    with pytest.raises(AdapterError) as e:
+        validate_model(data, fewer)
+    assert e.value.field == "model.graph.output"
+    # a custom op hidden in a node of the default domain is refused by name too
+    import onnx
+
+    model = onnx.ModelProto.FromString(data)
+    model.graph.node[0].domain = "com.microsoft"
+    with pytest.raises(AdapterError) as e:
+        validate_model(model.SerializeToString(), small_fit.manifest)
+    assert e.value.field == "model.graph.node" and "custom operator domain" in str(e.value)
+
+
+def sqrt_adapter(manifest, weights: np.ndarray) -> bytes:
+    """An adapter whose expression is Sqrt(W_e s): NaN for the frames where W_e s is negative."""
+    import onnx
+    from onnx import TensorProto, helper, numpy_helper
+
+    t, j = manifest.num_expressions, manifest.num_joints
+    inits = [numpy_helper.from_array(weights[:t].T.astype(np.float32), "W_e")]
+    nodes = [helper.make_node("MatMul", ["source", "W_e"], ["lin"]), helper.make_node("Sqrt", ["lin"], ["expression"])]
+    outputs = [helper.make_tensor_value_info("expression", TensorProto.FLOAT, ["batch", t])]
+    if j:
+        inits += [numpy_helper.from_array(weights[t:].T.astype(np.float32), "W_j"),
+                  numpy_helper.from_array(np.array([-1, j, 3], np.int64), "shape")]
+        nodes += [helper.make_node("MatMul", ["source", "W_j"], ["jl"]),
+                  helper.make_node("Reshape", ["jl", "shape"], ["joints"])]
+        outputs.append(helper.make_tensor_value_info("joints", TensorProto.FLOAT, ["batch", j, 3]))
+    graph = helper.make_graph(nodes, "sqrt", [helper.make_tensor_value_info("source", TensorProto.FLOAT,
+                                                                            ["batch", manifest.num_source])],
+                              outputs, inits)
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)], ir_version=8)
+    onnx.checker.check_model(model)
+    return model.SerializeToString()
+
+
+def test_adapter_nan_output_is_a_per_frame_error(small_fit):
+    """A model whose output is NaN for some frames: those frames get an AdapterError naming the adapter, the
+    others their values."""
+    from render_core.adapters.runtime import AdapterRuntime
+    from render_core.adapters.validate import validate_model
+
+    weights = np.zeros_like(small_fit.weights)
+    weights[:, 0] = 1.0  # expression = sqrt(s_0)
+    data = sqrt_adapter(small_fit.manifest, weights)
+    validate_model(data, small_fit.manifest)  # a valid model: only some inputs make it misbehave
+    x = np.zeros((3, 52), np.float32)
+    x[:, 0] = [0.25, -1.0, 4.0]
+    expression, _, errors = AdapterRuntime(data, small_fit.manifest).run(x)
+    assert errors[0] is None and errors[2] is None
+    assert errors[1] is not None and errors[1].field == "adapter" and "non-finite" in str(errors[1])
+    np.testing.assert_allclose(expression[[0, 2], 0], [0.5, 2.0])
+
+
+def test_adapter_manifest_round_trip_and_refusals(small_fit):
+    from render_core.adapters.manifest import AdapterError, AdapterManifest
+
+    d = small_fit.manifest.to_dict()
+    assert AdapterManifest.from_dict(d).to_dict() == d
+    for broken, field in (({**d, "format": "x"}, "manifest.format"),
+                          ({**d, "source": {**d["source"], "names": ["a", "a"]}}, "manifest.source.names"),
+                          ({**d, "target": {**d["target"], "expression_min": [0.0]}}, "manifest.target.expression_min"),
+                          ({**d, "source": {**d["source"], "convention": "kinect"}}, "manifest.source.convention")):
+        with pytest.raises(AdapterError) as e:
+            AdapterManifest.from_dict(broken)
+        assert e.value.field == field
+
+
+def test_one_euro_filter_smooths_jitter_and_follows_motion():
+    """Jitter on a still value is damped; a fast ramp is followed with little lag when beta > 0; the first sample
+    passes; bad parameters are refused naming the parameter."""
+    from render_core.adapters.manifest import AdapterError
+    from render_core.adapters.smoothing import OneEuroFilter
+
+    rng = np.random.default_rng(0)
+    still = 0.5 + rng.normal(0, 0.05, (300, 4))
+    f = OneEuroFilter(min_cutoff=1.0, beta=0.0)
+    out = np.array([f(x, t=i / 60) for i, x in enumerate(still)])
+    np.testing.assert_allclose(out[0], still[0])
+    assert out[60:].std(0).max() < 0.3 * still[60:].std(0).min()
+    ramp = np.linspace(0, 1, 60)[:, None] * np.ones(4)
+    lag = {}
+    for beta in (0.0, 5.0):
+        f = OneEuroFilter(min_cutoff=1.0, beta=beta)
+        lag[beta] = abs(np.array([f(x, t=i / 60) for i, x in enumerate(ramp)])[-1] - 1).max()
+    assert lag[5.0] < 0.5 * lag[0.0]
+    with pytest.raises(AdapterError) as e:
+        OneEuroFilter(min_cutoff=0.0)
+    assert e.value.field == "smoothing.min_cutoff"
+
+
+def test_adapter_commands_fit_list_show_validate_and_bench(head, tmp_path, capsys):
+    import json
+
+    from render_core.facemodel import write_facemodel
+    from render_core.tools.cli import main
+
+    target, _ = mixed(head, k=10)
+    write_facemodel(target, tmp_path / "mixed.facemodel")
+    data = tmp_path / "data"
+    assert main(["adapter", "fit", "--source", "open-head", "--target", str(tmp_path / "mixed.facemodel"),
+                 "--out", "arkit-to-mixed", "--data-dir", str(data)]) == 0
+    fitted = json.loads(capsys.readouterr().out)
+    assert fitted["fit"]["method"] == "direct" and fitted["expressions"] == 10
+    assert (data / "adapters" / "arkit-to-mixed.onnx").is_file()
+    assert main(["adapter", "list", "--data-dir", str(data)]) == 0
+    listed = json.loads(capsys.readouterr().out)["adapters"]
+    assert [a["id"] for a in listed] == ["arkit-to-mixed"] and listed[0]["tenant"] is None
+    assert main(["adapter", "show", "arkit-to-mixed", "--data-dir", str(data)]) == 0
+    assert json.loads(capsys.readouterr().out)["manifest"]["source"]["convention"] == "arkit-52"
+    assert main(["adapter", "validate", "arkit-to-mixed", "--data-dir", str(data)]) == 0
+    assert json.loads(capsys.readouterr().out)["valid"] is True
+    (tmp_path / "bad.onnx").write_bytes(b"not onnx")
+    (tmp_path / "m.json").write_text((data / "adapters" / "arkit-to-mixed.json").read_text())
+    assert main(["adapter", "validate", str(tmp_path / "bad.onnx"), "--manifest", str(tmp_path / "m.json")]) == 1
+    assert json.loads(capsys.readouterr().out)["field"] == "model"
+    assert main(["bench", "adapter", "--adapter", "arkit-to-mixed", "--data-dir", str(data), "--frames", "50",
+                 "--render-frames", "0", "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["inputs"] == 52 and report["outputs"]["expression"] == 10
+    assert set(report["ms_per_frame"]) == {"batch1", "batch8"}

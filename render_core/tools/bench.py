@@ -358,3 +358,74 @@ def _cpu_name() -> str:
     except OSError:
         pass
     return platform.processor() or platform.machine()
+
+
+def generated_adapter(seed: int = 0, expressions: int = 50, joints: tuple[str, ...] = ("jaw",)):
+    """The default adapter of ``bench adapter``: ARKit-52 -> a FLAME-sized target (50 expressions + jaw), linear,
+    with random weights and clamping. Returns (model bytes, manifest)."""
+    from ..adapters.manifest import AdapterManifest
+    from ..adapters.onnx_model import model_bytes
+    from ..facemodel.open_head import ARKIT_52
+
+    rng = np.random.default_rng(seed)
+    manifest = AdapterManifest(
+        id="bench-arkit-to-flame", source_names=list(ARKIT_52), source_convention="arkit-52",
+        target_face_model="flame-sized", target_expression_names=[f"exp_{i:02d}" for i in range(expressions)],
+        target_joint_names=list(joints), expression_min=[-3.0] * expressions, expression_max=[3.0] * expressions,
+        provenance={"tool": "blendsplat bench adapter", "method": "random weights"})
+    weights = rng.normal(0, 0.3, (expressions + 3 * len(joints), len(ARKIT_52)))
+    return model_bytes(manifest, weights), manifest
+
+
+def bench_adapter(model: bytes | None = None, manifest=None, frames: int = 2000, warmup: int = 100,
+                  render_frames: int = 3, size: int = 512, gaussians: int = 10_000, seed: int = 0) -> dict:
+    """Per-frame cost of an adapter in the engine's call (onnxruntime run + the finite check), at batch 1 and at
+    batch 8 (the batch's time / 8), medians over ``frames`` calls; beside it the render time of one frame of a
+    synthetic avatar with the adapter's target expression count (0 render frames: skipped)."""
+    from ..adapters.runtime import AdapterRuntime
+
+    _check_counts(1, frames=frames, size=size, gaussians=gaussians)
+    _check_counts(0, warmup=warmup, render_frames=render_frames)
+    if model is None:
+        model, manifest = generated_adapter(seed)
+    runtime = AdapterRuntime(model, manifest)
+    rng = np.random.default_rng(seed)
+    per_frame = {}
+    for batch in (1, 8):
+        inputs = rng.uniform(0, 1, (warmup + frames, batch, manifest.num_source)).astype(np.float32)
+        times = []
+        for i, x in enumerate(inputs):
+            t0 = time.perf_counter_ns()
+            runtime.run(x)
+            if i >= warmup:
+                times.append((time.perf_counter_ns() - t0) / 1e6)
+        per_frame[f"batch{batch}"] = round(statistics.median(times) / batch, 5)
+        per_frame[f"batch{batch}_p95"] = round(float(np.percentile(times, 95)) / batch, 5)
+    report = {
+        "benchmark": "adapter",
+        "adapter": manifest.id,
+        "source": manifest.source_convention,
+        "inputs": manifest.num_source,
+        "outputs": {"expression": manifest.num_expressions, "joints": manifest.num_joints,
+                    "values": manifest.num_expressions + 3 * manifest.num_joints},
+        "model_bytes": len(model),
+        "ms_per_frame": {"batch1": per_frame["batch1"], "batch8": per_frame["batch8"]},
+        "p95_ms_per_frame": {"batch1": per_frame["batch1_p95"], "batch8": per_frame["batch8_p95"]},
+        "frames": frames,
+        "threads": {"intra_op": 1},
+        "machine": {"cpu": _cpu_name(), "cores": _cores(), "python": platform.python_version()},
+    }
+    try:
+        import onnxruntime
+
+        report["machine"]["onnxruntime"] = onnxruntime.__version__
+    except ImportError:  # pragma: no cover - the runtime above imported it
+        pass
+    if render_frames:
+        render = bench_render(gaussians=gaussians, blendshapes=max(manifest.num_expressions, 1), size=size,
+                              frames=render_frames, warmup=1, reference_frames=0, seed=seed)
+        report["render_ms_per_frame"] = render["ms"]["total"]
+        report["render"] = {"backend": render["backend"], "gaussians": render["gaussians"], "size": size,
+                            "blendshapes": render["blendshapes"]}
+        report["adapter_vs_render"] = round(per_frame["batch8"] / render["ms"]["total"], 6)
+    return report

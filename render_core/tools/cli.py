@@ -235,7 +235,128 @@ def cmd_facemodel_import_flame(args: argparse.Namespace) -> int:
     model = load_flame(args.pkl, n_expression=args.n_expression)
     path = write_facemodel(model, args.out)
     log.info("wrote %s (%s)", path, model.name)
-    _emit({"path": str(path), "name": model.name, **model.metadata})
+    adapters = []
+    if not args.no_adapters:  # ARKit streams drive FLAME avatars and FLAME streams ARKit ones (issue 19)
+        from ..facemodel.open_head import open_head
+
+        head = open_head()
+        for source, target, adapter_id in ((head, model, f"arkit-to-{model.name}"),
+                                           (model, head, f"{model.name}-to-arkit")):
+            adapters.append(fit_and_store(source, target, adapter_id, _adapter_dir(args)))
+            log.info("wrote adapter %s", adapter_id)
+    _emit({"path": str(path), "name": model.name, **model.metadata,
+           "adapters": [{"id": a["id"], "path": a["path"], "fit": a["fit"]} for a in adapters]})
+    return 0
+
+
+def _facemodel_arg(text: str):
+    """A face model named on the command line: "open-head" (the shipped one) or a face-model file."""
+    from ..facemodel import read_facemodel
+    from ..facemodel.open_head import open_head
+
+    return open_head() if text in ("open-head", "open") else read_facemodel(text)
+
+
+def _adapter_dir(args: argparse.Namespace) -> Path:
+    return Path(args.data_dir) / "adapters"
+
+
+def fit_and_store(source, target, adapter_id: str, folder: Path, clamp: bool = True,
+                  target_joints: list[str] | None = None, ridge: float = 1e-6) -> dict:
+    """Fit an adapter (render_core.adapters.fit), write its ONNX model and record into ``folder``, validated as an
+    upload would be; the summary the commands print."""
+    from ..adapters.files import check_adapter_id, write_adapter
+    from ..adapters.fit import fit
+    from ..adapters.onnx_model import model_bytes
+    from ..adapters.validate import validate_model
+
+    check_adapter_id(adapter_id, field="out")
+    result = fit(source, target, adapter_id=adapter_id, clamp=clamp, target_joints=target_joints, ridge=ridge)
+    data = model_bytes(result.manifest, result.weights, result.bias)
+    validate_model(data, result.manifest)
+    record = write_adapter(folder, data, result.manifest)
+    m = result.manifest
+    return {"id": adapter_id, "path": str(folder / f"{adapter_id}.onnx"), "source": m.source_face_model,
+            "source_convention": m.source_convention, "inputs": m.num_source, "target": m.target_face_model,
+            "expressions": m.num_expressions, "joints": m.target_joint_names, "clamp": clamp,
+            "model_bytes": record["model_bytes"], "fit": result.stats}
+
+
+def cmd_adapter_fit(args: argparse.Namespace) -> int:
+    source, target = _facemodel_arg(args.source), _facemodel_arg(args.target)
+    joints = None if args.target_joints is None else [j for j in args.target_joints.split(",") if j]
+    summary = fit_and_store(source, target, args.out, _adapter_dir(args), clamp=not args.no_clamp,
+                            target_joints=joints, ridge=args.ridge)
+    log.info("wrote adapter %s (%s -> %s)", args.out, source.name, target.name)
+    _emit(summary)
+    return 0
+
+
+def cmd_adapter_list(args: argparse.Namespace) -> int:
+    from ..adapters.files import adapter_ids, read_record
+
+    out = []
+    for adapter_id in adapter_ids(_adapter_dir(args)):
+        try:
+            record, m = read_record(_adapter_dir(args), adapter_id)
+        except BlendsplatError as e:
+            out.append({"id": adapter_id, "error": str(e)})
+            continue
+        out.append({"id": adapter_id, "source_convention": m.source_convention, "inputs": m.num_source,
+                    "target": m.target_face_model, "expressions": m.num_expressions, "joints": m.target_joint_names,
+                    "tenant": record.get("tenant")})
+    _emit({"adapters": out})
+    return 0
+
+
+def cmd_adapter_show(args: argparse.Namespace) -> int:
+    from ..adapters.files import read_record
+
+    record, _ = read_record(_adapter_dir(args), args.id)
+    _emit({"id": args.id, **record})
+    return 0
+
+
+def cmd_adapter_validate(args: argparse.Namespace) -> int:
+    from ..adapters.files import paths, read_record
+    from ..adapters.manifest import AdapterManifest
+    from ..adapters.validate import validate_model
+
+    try:
+        if args.manifest is not None:  # a model file and its manifest (an upload to be)
+            data = Path(args.model).read_bytes()
+            raw = json.loads(Path(args.manifest).read_text(encoding="utf-8"))
+            manifest = AdapterManifest.from_dict(raw.get("manifest", raw) if isinstance(raw, dict) else raw)
+        else:  # a stored adapter by id
+            _, manifest = read_record(_adapter_dir(args), args.model)
+            data = paths(_adapter_dir(args), args.model)[0].read_bytes()
+        validate_model(data, manifest)
+    except BlendsplatError as e:
+        _emit({"adapter": args.model, "valid": False, "error": str(e), "field": e.field})
+        return 1
+    _emit({"adapter": args.model, "valid": True, "inputs": manifest.num_source,
+           "expressions": manifest.num_expressions, "joints": manifest.target_joint_names})
+    return 0
+
+
+def cmd_bench_adapter(args: argparse.Namespace) -> int:
+    from .bench import bench_adapter
+
+    model = manifest = None
+    if args.adapter:
+        from ..adapters.files import read_adapter
+
+        model, manifest, _ = read_adapter(_adapter_dir(args), args.adapter)
+    report = bench_adapter(model, manifest, frames=args.frames, render_frames=args.render_frames, size=args.size,
+                           gaussians=args.gaussians, seed=args.seed)
+    if args.json:
+        _emit(report)
+    else:
+        ms = report["ms_per_frame"]
+        print(f"adapter {report['adapter']}: {report['inputs']} -> {report['outputs']['values']} values, "
+              f"{ms['batch1']} ms per frame at batch 1, {ms['batch8']} ms per frame at batch 8"
+              + (f" (render {report['render_ms_per_frame']} ms per frame)" if "render_ms_per_frame" in report
+                 else ""))
     return 0
 
 
@@ -389,10 +510,41 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--pkl", required=True, type=Path)
     s.add_argument("--out", required=True, type=Path)
     s.add_argument("--n-expression", type=int, default=50, help="expression components kept (the paper: 50)")
+    s.add_argument("--data-dir", type=Path, default=Path("data"),
+                   help="where the ARKit -> FLAME and FLAME -> ARKit adapters fitted against the open head go "
+                        "(<data-dir>/adapters; the service's data dir)")
+    s.add_argument("--no-adapters", action="store_true", help="do not fit the ARKit <-> FLAME adapters")
     s.set_defaults(fn=cmd_facemodel_import_flame)
     s = fsub.add_parser("inspect", help="print a face-model file's layout")
     s.add_argument("file", type=Path)
     s.set_defaults(fn=cmd_facemodel_inspect)
+
+    ad = sub.add_parser("adapter", help="retargeting adapters (ONNX): fit, list, show, validate")
+    asub = ad.add_subparsers(dest="adapter_command", required=True)
+    s = asub.add_parser("fit", help="fit the linear map from one face model's coefficients to another's (registration "
+                                    "for different topologies) and store it as <data-dir>/adapters/<ID>.onnx")
+    s.add_argument("--source", required=True, help="face-model file, or open-head")
+    s.add_argument("--target", required=True, help="face-model file, or open-head")
+    s.add_argument("--out", required=True, metavar="ID", help="the adapter's id")
+    s.add_argument("--data-dir", type=Path, default=Path("data"), help="the service's data dir (default ./data)")
+    s.add_argument("--no-clamp", action="store_true", help="do not clamp to the target's coefficient range")
+    s.add_argument("--target-joints", default=None,
+                   help="comma-separated target joints to drive (default: jaw and eyes for non-ARKit targets)")
+    s.add_argument("--ridge", type=float, default=1e-6, help="relative Tikhonov weight of the fit")
+    s.set_defaults(fn=cmd_adapter_fit)
+    s = asub.add_parser("list", help="the adapters in <data-dir>/adapters")
+    s.add_argument("--data-dir", type=Path, default=Path("data"))
+    s.set_defaults(fn=cmd_adapter_list)
+    s = asub.add_parser("show", help="an adapter's record: manifest, owner, size, digest")
+    s.add_argument("id")
+    s.add_argument("--data-dir", type=Path, default=Path("data"))
+    s.set_defaults(fn=cmd_adapter_show)
+    s = asub.add_parser("validate", help="check a stored adapter (by id), or a model file with --manifest, as an "
+                                         "upload is checked; exit 0 if valid")
+    s.add_argument("model", help="adapter id, or an .onnx file with --manifest")
+    s.add_argument("--manifest", type=Path, default=None, help="the manifest JSON of a model file")
+    s.add_argument("--data-dir", type=Path, default=Path("data"))
+    s.set_defaults(fn=cmd_adapter_validate)
 
     data = sub.add_parser("data", help="tracked-video datasets: validate, convert, synthesise")
     dsub = data.add_subparsers(dest="data_command", required=True)
@@ -503,6 +655,19 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--seed", type=int, default=0)
     b.add_argument("--json", action="store_true")
     b.set_defaults(fn=cmd_bench_codecs)
+
+    b = bsub.add_parser("adapter", help="per-frame cost of a retargeting adapter (onnxruntime) at batch 1 and 8, "
+                                        "beside one frame's render time")
+    b.add_argument("--adapter", default=None, help="a stored adapter's id (default: a generated ARKit-52 -> 50 "
+                                                   "expressions + jaw linear adapter)")
+    b.add_argument("--data-dir", type=Path, default=Path("data"))
+    b.add_argument("--frames", type=int, default=2000, help="timed calls per batch size")
+    b.add_argument("--render-frames", type=int, default=3, help="rendered frames for the comparison (0: skip)")
+    b.add_argument("--size", type=int, default=512)
+    b.add_argument("--gaussians", type=int, default=10_000)
+    b.add_argument("--seed", type=int, default=0)
+    b.add_argument("--json", action="store_true")
+    b.set_defaults(fn=cmd_bench_adapter)
 
     d = sub.add_parser("demo", help="render a demo animation of a synthetic avatar")
     d.add_argument("--out", type=Path, default=Path("out/demo"))
