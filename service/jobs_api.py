@@ -12,6 +12,7 @@ error shape of :mod:`service.errors`)::
     GET    /v1/jobs/{id}
     POST   /v1/jobs/{id}/cancel             202 with the job (200 when it had already finished)
     GET    /v1/jobs/{id}/artefacts/{name}   report | summary | curves | contact-sheet | preview | log
+    GET    /v1/jobs/{id}/events             server-sent events: the job's history, then live (service/job_events.py)
     DELETE /v1/jobs/{id}                    204: the row, its events and its work folder
     DELETE /v1/avatars/{id}                 204: the bundle, its verification record and cached copies
 
@@ -60,12 +61,13 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, Literal
 
 from fastapi import APIRouter, Header, Query, Request, Response
-from fastapi.responses import FileResponse
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from fastapi.responses import FileResponse, StreamingResponse
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_serializer
 from python_multipart.exceptions import MultipartParseError
 from python_multipart.multipart import MultipartParser, parse_options_header
 from starlette.requests import ClientDisconnect
 
+from . import job_events
 from .archive import ArchiveError
 from .errors import FailedPrecondition, InvalidArgument, NotFound
 from .jobs import Job, JobState, JobStore
@@ -75,6 +77,8 @@ from .store import RECORD as VERIFIED_RECORD
 from .store import check_id
 from .uploads import ID_PATTERN as UPLOAD_ID_PATTERN
 from .uploads import InvalidDataset, Upload, UploadStore, UploadTooLarge
+from .webhooks import MAX_URL_CHARS as MAX_WEBHOOK_URL
+from .webhooks import check_url as check_webhook_url
 
 if TYPE_CHECKING:
     from .engine import Engine
@@ -163,6 +167,9 @@ class JobRequest(BaseModel):
                                    description="longest image side to train at (accepted; today the worker trains at "
                                                "the dataset's own resolution and says so in the job's log)")
     seed: int = Field(0, ge=0, le=2**32 - 1)
+    webhook_url: str | None = Field(None, min_length=8, max_length=MAX_WEBHOOK_URL,
+                                    description="http(s) URL that gets a signed POST on every state change of the job "
+                                                "(service/webhooks.py); left out of the spec when not given")
 
     @field_validator("avatar_id")
     @classmethod
@@ -170,6 +177,30 @@ class JobRequest(BaseModel):
         if value.endswith(".tmp"):
             raise ValueError("an avatar id may not end in '.tmp'")
         return value
+
+    @field_validator("webhook_url")
+    @classmethod
+    def _webhook_url(cls, value: str | None) -> str | None:
+        return None if value is None else check_webhook_url(value)
+
+    @model_serializer(mode="wrap")
+    def _without_unset_webhook(self, handler):
+        out = handler(self)
+        if out.get("webhook_url") is None:
+            out.pop("webhook_url", None)
+        return out
+
+
+class WebhookOut(BaseModel):
+    id: str = Field(description="the message id (the webhook-id header), the same on every attempt")
+    event: str = Field(description="job.running, job.succeeded, job.failed, job.cancelled or job.queued (requeued)")
+    status: Literal["pending", "delivered", "failed"]
+    attempts: int
+    last_status: int | None = Field(description="the HTTP status of the last answer")
+    last_error: str | None
+    next_attempt_at: datetime | None
+    created_at: datetime
+    delivered_at: datetime | None
 
 
 class Progress(BaseModel):
@@ -206,6 +237,7 @@ class JobOut(BaseModel):
     finished_at: datetime | None
     updated_at: datetime
     links: JobLinks
+    webhooks: list[WebhookOut] = Field([], description="the deliveries of the job's webhook_url, oldest first")
 
 
 class JobList(BaseModel):
@@ -280,7 +312,11 @@ class Training:
             finished_at=job.finished_at, updated_at=job.updated_at,
             links=JobLinks(self=base, cancel=f"{base}/cancel",
                            upload=f"/v1/uploads/{upload_id}" if isinstance(upload_id, str) else None,
-                           artefacts=artefacts, avatar=f"/v1/avatars/{avatar_id}" if avatar_id else None))
+                           artefacts=artefacts, avatar=f"/v1/avatars/{avatar_id}" if avatar_id else None),
+            webhooks=[WebhookOut(id=d.id, event=d.event, status=d.status.value, attempts=d.attempts,
+                                 last_status=d.last_status, last_error=d.last_error, next_attempt_at=d.next_attempt_at,
+                                 created_at=d.created_at, delivered_at=d.delivered_at)
+                      for d in (self.jobs.deliveries(job.id) if job.spec.get("webhook_url") else ())])
 
     def artefact(self, job_id: str, name: str) -> tuple[Path, str]:
         """The file of a job's artefact and its media type; NotFound for an unknown job or name, or a file not
@@ -689,6 +725,24 @@ def cancel_job(job_id: str, request: Request, response: Response) -> JobOut:
 def get_artefact(job_id: str, name: str, request: Request) -> FileResponse:
     path, media_type = _training(request).artefact(job_id, name)
     return FileResponse(path, media_type=media_type, headers={"Cache-Control": "no-store"})
+
+
+@jobs.get("/{job_id}/events", response_class=StreamingResponse,
+          summary="The job's events as server-sent events: its history, then live, until it ends",
+          description="text/event-stream; one event per recorded event: `id` (resume with the `Last-Event-ID` "
+                      "header or `?after=`), `event` (progress, state, preview, log) and one line of JSON `data`. "
+                      "A finished job's stream sends what is left and `event: end`, then closes. See "
+                      "service/job_events.py.",
+          responses={200: {"content": {"text/event-stream": {}}}, 429: {"model": ErrorBody,
+                                                                       "description": "too many streams open"},
+                     **_ERRORS})
+def follow_job(job_id: str, request: Request, after: Annotated[int | None, Query(ge=0)] = None,
+               last_event_id: Annotated[str | None, Header(alias="Last-Event-ID", max_length=64)] = None,
+               ) -> StreamingResponse:
+    training = _training(request)
+    training.jobs.get(job_id)  # NotFound: the one JSON 404, not a stream
+    start = job_events.last_event_id(last_event_id, after)
+    return job_events.event_stream(request.app, training, job_id, start)
 
 
 @jobs.delete("/{job_id}", status_code=204, response_class=Response,

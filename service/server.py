@@ -40,8 +40,10 @@ from .engine import Engine
 from .errors import ServiceError
 from .grpc_server import GrpcServer
 from .http_app import create_app, stop_reading_bodies
+from .job_events import close_streams
 from .jobs_api import RETENTION_INTERVAL_SECONDS, Training
 from .settings import Settings
+from .webhooks import WebhookDispatcher, load_secret
 
 log = logging.getLogger(__name__)
 DEMO_ID = "demo"
@@ -84,6 +86,7 @@ class Service:
         self.http: _Uvicorn | None = None
         self.app = None  # the HTTP app (its state carries readiness reasons and the drain's body refusal)
         self.training: Training | None = None
+        self.webhooks: WebhookDispatcher | None = None  # sends job webhooks (service/webhooks.py)
         self._retention: asyncio.Task | None = None
         self._sweep: asyncio.Future | None = None  # the sweep in its thread (cancelling the task does not stop it)
         self.stopped = asyncio.Event()
@@ -102,6 +105,8 @@ class Service:
     async def start(self) -> None:
         s, engine = self.settings, self.engine
         self.training = await asyncio.to_thread(Training.open, s, engine.metrics)
+        self.webhooks = WebhookDispatcher(s, self.training.jobs, await asyncio.to_thread(load_secret, s))
+        self.webhooks.start()
         await engine.start()
         stale = engine.store.clean_stale(older_than=2 * s.body_timeout_seconds)
         if stale:
@@ -177,6 +182,8 @@ class Service:
         s = self.settings
         if self._retention is not None:
             self._retention.cancel()
+        if self.webhooks is not None:
+            await self.webhooks.stop()  # prompt: an attempt in flight is retried later (by any replica)
         self.engine.begin_drain()
         if self.grpc:
             await self.grpc.set_serving(False)
@@ -187,6 +194,7 @@ class Service:
         log.info("draining (up to %.1f s)", s.drain_seconds)
         if self.app is not None:
             stop_reading_bodies(self.app)  # uploads still arriving: 503, their temp files removed
+            close_streams(self.app)  # job event streams end now (clients reconnect with Last-Event-ID)
         # The streams get the drain time but a slice kept for the servers to close their connections.
         await self.engine.drain(max(0.0, deadline - time.monotonic() - min(1.0, s.drain_seconds / 4)))
         await asyncio.sleep(0.05)  # let the final statuses go out

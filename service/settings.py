@@ -65,6 +65,27 @@ class Settings(BaseSettings):
     heartbeat_seconds: float = Field(5.0, gt=0, description="worker heartbeat and progress interval")
     job_max_attempts: int = Field(3, ge=1, le=100, description="attempts of a job before it fails")
 
+    # Job events and webhooks (service/job_events.py, service/webhooks.py).
+    events_max_streams: int = Field(100, ge=1, description="concurrent job event streams (GET /v1/jobs/{id}/events) "
+                                                           "per process; more get 429")
+    events_max_seconds: float = Field(3600.0, gt=0, description="an event stream ends after this long (the client "
+                                                                "reconnects with Last-Event-ID)")
+    events_poll_seconds: float = Field(0.5, gt=0, description="how often an event stream looks for new events")
+    events_keepalive_seconds: float = Field(15.0, gt=0, description="a comment line on an idle event stream this "
+                                                                    "often (keeps proxies from closing it)")
+    webhook_secret: str | None = Field(
+        None, description="the HMAC-SHA256 key of webhook signatures ('whsec_' + base64, as in Standard Webhooks, "
+                          "or any other text, used as UTF-8 bytes). Unset: generated at first start into "
+                          "<data_dir>/webhook.secret (mode 0600); replicas must share it")
+    webhook_timeout_seconds: float = Field(10.0, gt=0, description="one webhook attempt's HTTP timeout")
+    webhook_max_attempts: int = Field(15, ge=1, le=100, description="attempts of a webhook before it is failed")
+    webhook_retry_seconds: float = Field(86400.0, gt=0, description="no webhook attempt starts later than this "
+                                                                    "after the state change; then it is failed")
+    webhook_backoff_seconds: float = Field(5.0, gt=0, description="delay before the first retry; doubled on each "
+                                                                  "one (with jitter)")
+    webhook_backoff_max_seconds: float = Field(3600.0, gt=0, description="the longest delay between retries")
+    webhook_poll_seconds: float = Field(1.0, gt=0, description="how often the dispatcher looks for due webhooks")
+
     @property
     def bundle_dir(self) -> Path:
         return self.data_dir / "bundles"
