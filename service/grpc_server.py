@@ -111,6 +111,17 @@ class RenderService(pb_grpc.RenderServiceServicer):
         return self.engine.unload(request.id)
 
 
+def connection_options(settings) -> list[tuple[str, int]]:
+    """gRPC channel arguments from the deployment settings: max connection age (and its grace) and max idle, in
+    milliseconds; a setting of 0 adds nothing (gRPC's default: no limit)."""
+    age, idle = settings.grpc_max_connection_age_seconds, settings.grpc_max_connection_idle_seconds
+    options = [("grpc.max_connection_idle_ms", idle)] if idle > 0 else []
+    if age > 0:
+        options += [("grpc.max_connection_age_ms", age),
+                    ("grpc.max_connection_age_grace_ms", settings.grpc_max_connection_age_grace_seconds)]
+    return [(name, max(1, round(seconds * 1000))) for name, seconds in options]
+
+
 class GrpcServer:
     """The gRPC server of one process; ``port`` is the bound port (useful with port 0)."""
 
@@ -122,6 +133,7 @@ class GrpcServer:
             ("grpc.keepalive_time_ms", 20_000),
             ("grpc.keepalive_timeout_ms", 10_000),
             ("grpc.http2.min_ping_interval_without_data_ms", 5_000),
+            *connection_options(s),
         ])
         pb_grpc.add_RenderServiceServicer_to_server(RenderService(engine), self.server)
         self.health = health.aio.HealthServicer()

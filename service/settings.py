@@ -86,6 +86,17 @@ class Settings(BaseSettings):
     webhook_backoff_max_seconds: float = Field(3600.0, gt=0, description="the longest delay between retries")
     webhook_poll_seconds: float = Field(1.0, gt=0, description="how often the dispatcher looks for due webhooks")
 
+    # Deployment: gRPC connections of long-lived streams (service/grpc_server.py), so replicas rebalance.
+    grpc_max_connection_age_seconds: float = Field(
+        0.0, ge=0, description="the gRPC server ends a connection this long after it opened (GOAWAY; clients "
+                               "reconnect, through the load balancer, to any replica), so long-lived streams "
+                               "spread over new replicas; 0: never")
+    grpc_max_connection_age_grace_seconds: float = Field(
+        30.0, ge=0, description="after max connection age, the streams still open get this long to end before the "
+                                "connection closes (a client then reopens its stream)")
+    grpc_max_connection_idle_seconds: float = Field(
+        0.0, ge=0, description="a gRPC connection with no call this long is closed; 0: never")
+
     @property
     def bundle_dir(self) -> Path:
         return self.data_dir / "bundles"

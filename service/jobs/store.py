@@ -64,6 +64,7 @@ from .models import (
     WebhookDeliveryRecord,
     make_engine,
 )
+from .netfs import warn_if_sqlite_on_network_filesystem
 
 log = logging.getLogger(__name__)
 
@@ -174,6 +175,7 @@ class JobStore:
     def open(cls, url: str, *, busy_timeout_ms: int = BUSY_TIMEOUT_MS) -> JobStore:
         """Connect to a job database (``sqlite:///path`` or ``postgresql+psycopg://...``; see
         :func:`~service.jobs.models.default_url`) and migrate it to the newest schema."""
+        warn_if_sqlite_on_network_filesystem(url)
         engine = make_engine(url, busy_timeout_ms=busy_timeout_ms)
         try:
             migrate(engine)

