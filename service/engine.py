@@ -76,17 +76,18 @@ class Job:
     cost: float = 0.0  # estimated (Gaussian, pixel) pairs (params.frame_cost)
     received: float = field(default_factory=time.perf_counter)
     started: float = 0.0
+    drive: object | None = None  # a frame waiting for its adapter (service/adapters.py): frame is None until mapped
 
     @classmethod
     def build(cls, avatar: Avatar, msg: pb.FrameParams, order: list[str], out: params.Output, budget: float,
               camera: Cameras | None = None, background: torch.Tensor | None = None,
-              cost: float | None = None) -> Job:
+              cost: float | None = None, drive: object | None = None) -> Job:
         """The job of one FrameParams message, validated (typed errors naming the field): its camera, else
         ``camera`` (whose estimated cost is ``cost``), else the avatar's default at the output size; its
         background, else ``background``, else black; ``order`` maps positional coefficients to names. A frame
         whose estimated cost passes ``budget`` is refused (RESOURCE_EXHAUSTED naming ``camera`` or ``width``)."""
         own_camera = msg.HasField("camera")
-        frame = params.frame(avatar, msg, order)
+        frame = params.frame(avatar, msg, order) if drive is None else None  # an adapter's frame: at render time
         cams = params.camera(avatar, msg.camera if own_camera else None, out, camera)
         if own_camera or cost is None:
             cost = params.check_cost(params.frame_cost(avatar, cams), budget, out,
@@ -94,7 +95,7 @@ class Job:
         return cls(
             frame=frame, camera=cams,
             background=params.background(msg.background if msg.HasField("background") else None, background),
-            index=msg.index, client_time_us=msg.client_time_us, cost=cost,
+            index=msg.index, client_time_us=msg.client_time_us, cost=cost, drive=drive,
         )
 
 
@@ -121,6 +122,7 @@ class Session:
         self.cost = params.check_cost(params.frame_cost(avatar, self.camera), s.max_frame_splat_pixels, self.out,
                                       "camera" if config.HasField("camera") else "width")
         self.background = params.background(config.background if config.HasField("background") else None)
+        self.adapter = engine.adapters.for_session(avatar, config, self.order)  # retargeting, smoothing (or None)
         try:
             self.encoder: Encoder = make_encoder(self.out.codec, self.out.width, self.out.height, config.quality,
                                                  config.fps_hint or 30.0)
@@ -146,7 +148,9 @@ class Session:
         return pb.StreamResponse(header=pb.StreamHeader(
             session_id=self.id, avatar_id=self.entry.id, expression_names=a.expression_names,
             joint_names=a.joint_names, width=self.out.width, height=self.out.height, codec=self.out.codec_enum,
-            max_in_flight=self.max_in_flight, gaussians=a.num_gaussians + a.num_mouth))
+            max_in_flight=self.max_in_flight, gaussians=a.num_gaussians + a.num_mouth,
+            adapter_id=self.adapter.adapter_id if self.adapter else "",
+            source_names=self.adapter.source_names if self.adapter else []))
 
     def handle(self, request: pb.StreamRequest) -> None:
         """Apply one client message. Bad messages get an ``error`` reply; the stream goes on."""
@@ -175,8 +179,9 @@ class Session:
         if msg.index <= self.last_index:
             raise InvalidArgument(f"{msg.index} is not above the previous frame's index {self.last_index}; frame "
                                   "indices must increase with every frame", field="index")
+        drive = self.adapter.prepare(msg) if self.adapter is not None else None
         job = Job.build(self.entry.avatar, msg, self.order, self.out, self.engine.settings.max_frame_splat_pixels,
-                        self.camera, self.background, self.cost)
+                        self.camera, self.background, self.cost, drive)
         self.last_index = msg.index
         if self.pending is not None:
             self._drop()
@@ -282,6 +287,9 @@ class Engine:
         self._busy = False
         self._vclock = 0.0  # the render time charged to the session served last (fair share's "now")
         self._scheduler: asyncio.Task | None = None
+        from .adapters import Adapters
+
+        self.adapters = Adapters(settings.data_dir / "adapters")  # retargeting adapters (issue 19)
 
     # --------------------------------------------------------------------------------------------- lifecycle
     async def start(self) -> None:
@@ -553,6 +561,13 @@ def _render_isolated(entry: Loaded, jobs: list[Job], encoders: list[Encoder]
 
 def _render(entry: Loaded, jobs: list[Job], encoders: list[Encoder]) -> list[Rendered | BaseException]:
     """Render B jobs of one avatar in one call and encode each (runs on the render thread)."""
+    from .adapters import resolve_frames
+
+    failed = resolve_frames(jobs)  # adapter-driven frames, one adapter run per adapter; refused ones never render
+    if failed:
+        kept = [i for i in range(len(jobs)) if i not in failed]
+        done = iter(_render(entry, [jobs[i] for i in kept], [encoders[i] for i in kept]) if kept else [])
+        return [failed[i] if i in failed else next(done) for i in range(len(jobs))]
     start = time.perf_counter()
     for job in jobs:
         job.started = start

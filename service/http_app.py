@@ -310,6 +310,53 @@ async def stream(ws: WebSocket) -> None:
         engine.close_session(session)
 
 
+# ------------------------------------------------------------------------------------------------------ adapters
+adapters = APIRouter(prefix="/v1/adapters", tags=["adapters"])
+_ADAPTER_UPLOAD = (16 << 20) + (2 << 20)  # the model's limit (service/adapters.py) plus the manifest and framing
+
+
+@adapters.get("", summary="Retargeting adapters in the store (ONNX models mapping a tracker's coefficients to a "
+                          "face model's)")
+async def list_adapters(request: Request) -> dict:
+    return {"adapters": _engine(request).adapters.list()}
+
+
+@adapters.get("/{adapter_id}", summary="One adapter: its manifest (source and target names), owner, size, digest")
+async def get_adapter(adapter_id: str, request: Request) -> dict:
+    return _engine(request).adapters.info(adapter_id)
+
+
+@adapters.put("/{adapter_id}", status_code=201, summary="Upload (create or replace) a retargeting adapter",
+              description="multipart/form-data with two parts: `manifest` (the JSON manifest, docs/method.md "
+                          "section 12; its id may be left out) and `model` (the .onnx file), e.g. curl -X PUT -F "
+                          "manifest=@m.json -F model=@a.onnx. Both are validated (size, opsets, operators, no "
+                          "external data, shapes against the manifest, loads in onnxruntime) before anything is "
+                          "stored; a refusal is 422 naming the reason's field.")
+async def put_adapter(adapter_id: str, request: Request) -> dict:
+    body = await _bounded_body(request, _ADAPTER_UPLOAD)  # read once, bounded; the form parses these bytes
+
+    async def replay() -> dict:
+        return {"type": "http.request", "body": body, "more_body": False}
+
+    try:
+        form = await Request(request.scope, replay).form(max_files=2, max_fields=2, max_part_size=_ADAPTER_UPLOAD)
+    except Exception as e:  # noqa: BLE001 - python-multipart's and starlette's parse errors
+        raise InvalidArgument(f"not a multipart/form-data body with manifest and model parts ({type(e).__name__})",
+                              field="body") from None
+    parts = {}
+    for name in ("manifest", "model"):
+        part = form.get(name)
+        if part is None:
+            raise InvalidArgument(f"the {name} part is missing", field=name)
+        parts[name] = part.encode() if isinstance(part, str) else await part.read()
+    return await asyncio.to_thread(_engine(request).adapters.put, adapter_id, parts["model"], parts["manifest"])
+
+
+@adapters.delete("/{adapter_id}", summary="Delete an adapter (sessions using it keep their loaded copy)")
+async def delete_adapter(adapter_id: str, request: Request) -> dict:
+    return _engine(request).adapters.delete(adapter_id)
+
+
 # ----------------------------------------------------------------------------------------------- operations
 ops = APIRouter(tags=["operations"])
 
@@ -361,7 +408,7 @@ def create_app(engine: Engine, training: Training | None = None) -> FastAPI:
     app.state.training = training
     app.state.problems = {}  # readiness check -> why it fails: a text, or a callable asked then (set by the process)
     app.state.closing = asyncio.Event()  # set by stop_reading_bodies (drain)
-    for router in (avatars, render, ops):
+    for router in (avatars, render, adapters, ops):
         app.include_router(router)
     if training is not None:
         for router in TRAINING_ROUTERS:
