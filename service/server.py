@@ -182,8 +182,8 @@ class Service:
         s = self.settings
         if self._retention is not None:
             self._retention.cancel()
-        if self.webhooks is not None:
-            await self.webhooks.stop()  # prompt: an attempt in flight is retried later (by any replica)
+        # the dispatcher stops beside the drain: an attempt in flight gets a second, else is retried later
+        webhooks_stopped = asyncio.ensure_future(self.webhooks.stop()) if self.webhooks is not None else None
         self.engine.begin_drain()
         if self.grpc:
             await self.grpc.set_serving(False)
@@ -212,6 +212,8 @@ class Service:
         if self._sweep is not None:
             with contextlib.suppress(Exception):
                 await self._sweep  # a sweep in progress finishes before its stores close
+        if webhooks_stopped is not None:
+            await webhooks_stopped
         if self.training is not None:
             await asyncio.to_thread(self.training.close)
         self.stopped.set()

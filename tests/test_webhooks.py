@@ -326,6 +326,22 @@ def test_stopping_the_dispatcher_is_prompt_with_an_attempt_in_flight(tmp_path):
         receiver.close()
 
 
+def test_a_service_shutdown_is_not_held_up_by_a_webhook_in_flight(tmp_path):
+    receiver = Receiver(failures=0, delay=20)
+    s = Server(tmp_path / "data", webhook_secret=SECRET, webhook_timeout_seconds=60, **FAST)
+    try:
+        job_id = job_with_webhook(s.store, receiver.url)
+        wait_for(lambda: len(receiver.requests) == 1, what="the attempt to start")
+        assert s.stop() < 5  # drain_seconds=20: the dispatcher does not wait for the receiver
+        with JobStore.open(s.settings.jobs_database_url) as store:
+            (delivery,) = store.deliveries(job_id)
+        assert delivery.status is DeliveryStatus.PENDING and delivery.attempts == 1  # sent again later
+    finally:
+        if s.thread.is_alive():
+            s.stop()
+        receiver.close()
+
+
 def test_the_secret_is_generated_once_into_the_data_dir_with_mode_0600(tmp_path):
     config = Settings(data_dir=tmp_path / "data", auth="off")
     secret = load_secret(config)
