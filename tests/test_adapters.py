@@ -342,3 +342,47 @@ def test_adapter_commands_fit_list_show_validate_and_bench(head, tmp_path, capsy
     report = json.loads(capsys.readouterr().out)
     assert report["inputs"] == 52 and report["outputs"]["expression"] == 10
     assert set(report["ms_per_frame"]) == {"batch1", "batch8"}
+
+
+def flame_like(model: FaceModel, k: int = 10, seed: int = 2) -> FaceModel:
+    """A FLAME-shaped model on the open head's mesh: FLAME's joint tree (root, neck, jaw, eye_l, eye_r; the head
+    joint's weights go to the neck), ``k`` expressions exp_00... mixed from the ARKit ones."""
+    target, _ = mixed(model, k=k, seed=seed)
+    keep = [model.joint_names.index(n) for n in ("root", "neck", "jaw", "eye_l", "eye_r")]
+    w = model.lbs_weights.clone()
+    w[:, model.joint_names.index("neck")] += w[:, model.joint_names.index("head")]
+    return replace(target, name="flame-2020", joint_names=["root", "neck", "jaw", "eye_l", "eye_r"],
+                   joint_parents=[-1, 0, 1, 1, 1], joint_positions=model.joint_positions[keep].clone(),
+                   lbs_weights=w[:, keep].contiguous(), skull_joint="neck", vertex_groups={})
+
+
+def test_import_flame_also_fits_arkit_to_flame_and_back(head, tmp_path, capsys, monkeypatch):
+    """`facemodel import-flame` writes the face model and the ARKit -> FLAME (expressions + jaw and eye rotations)
+    and FLAME -> ARKit (expressions and jaw/eye pose in) adapters, valid and loadable."""
+    import json
+
+    import render_core.facemodel.flame as flame
+    from render_core.adapters.files import read_adapter
+    from render_core.adapters.runtime import AdapterRuntime
+    from render_core.tools.cli import main
+
+    model = flame_like(head)
+    monkeypatch.setattr(flame, "load_flame", lambda path, n_expression=50: model)
+    data = tmp_path / "data"
+    assert main(["facemodel", "import-flame", "--pkl", str(tmp_path / "generic_model.pkl"), "--out",
+                 str(tmp_path / "flame.facemodel"), "--data-dir", str(data)]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert [a["id"] for a in report["adapters"]] == ["arkit-to-flame-2020", "flame-2020-to-arkit"]
+    to_flame, m, _ = read_adapter(data / "adapters", "arkit-to-flame-2020")
+    assert m.source_convention == "arkit-52" and m.target_joint_names == ["jaw", "eye_l", "eye_r"]
+    x = np.zeros((1, 52), np.float32)
+    x[0, 24] = 1.0  # jawOpen: the FLAME-like target opens the jaw with the jaw joint (about the x axis)
+    _, joints, errors = AdapterRuntime(to_flame, m).run(x)
+    assert errors == [None] and abs(joints[0, 0, 0]) > 0.05
+    back, m2, _ = read_adapter(data / "adapters", "flame-2020-to-arkit")
+    assert m2.source_convention == "flame" and m2.source_names[-9:] == [
+        f"{j}.{a}" for j in ("jaw", "eye_l", "eye_r") for a in "xyz"] and m2.expression_min == [0.0] * 52
+    y = np.zeros((1, m2.num_source), np.float32)
+    y[0, m2.source_names.index("jaw.x")] = 0.2  # FLAME's jaw pose opens ARKit's jaw (clamped to [0, 1])
+    e, _, _ = AdapterRuntime(back, m2).run(y)
+    assert e[0, 24] in np.sort(e[0])[-2:] and e[0, 24] > 0.3 and e.min() >= 0 and e.max() <= 1
