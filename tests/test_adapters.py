@@ -386,3 +386,20 @@ def test_import_flame_also_fits_arkit_to_flame_and_back(head, tmp_path, capsys, 
     y[0, m2.source_names.index("jaw.x")] = 0.2  # FLAME's jaw pose opens ARKit's jaw (clamped to [0, 1])
     e, _, _ = AdapterRuntime(back, m2).run(y)
     assert e[0, 24] in np.sort(e[0])[-2:] and e[0, 24] > 0.3 and e.min() >= 0 and e.max() <= 1
+
+
+def test_registration_finds_the_same_surface_whatever_the_winding(head):
+    """A target 2 mm fatter than the source (every vertex pushed out along its normal) whose triangles wind the
+    other way (normals pointing in): non-rigid ICP still pulls it onto the source surface (its matches are not
+    dropped as opposite-facing), and the transfer carries the source's fields back vertex for vertex."""
+    from render_core.adapters.register import _vertex_normals
+
+    t = head.template.double().numpy()
+    fatter = t + 0.002 * _vertex_normals(t, head.faces.numpy())
+    target = replace(head, name="flipped", template=torch.tensor(fatter, dtype=torch.float32),
+                     faces=head.faces[:, [0, 2, 1]].clone(), metadata={})
+    corr = register(head, target)
+    assert corr.valid.mean() > 0.99 and float(np.median(corr.distance)) < 2e-4
+    field = head.expression_basis[:3].double().numpy()
+    error = np.linalg.norm(corr.transfer(field) - field, axis=-1)
+    assert np.median(error) < 1e-5

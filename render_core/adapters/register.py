@@ -241,10 +241,13 @@ def register(source: FaceModel, target: FaceModel, *, rigid_iterations: int = 10
     xt = torch.as_tensor(x)
     for alpha in np.geomspace(stiffness[0], stiffness[1], nonrigid_iterations):
         q, tri, _, d = index.query(xt + u, cand)
-        # normals: a match across opposite-facing surfaces (inside vs outside) is dropped
+        # normals: a match across opposite-facing surfaces (inside vs outside) is dropped; the two meshes' winding
+        # may be opposite (the sign that most close matches agree on is taken as "facing the same way")
         w = (d <= max_distance).double()
-        tn = _vertex_normals(x + u.numpy(), ft)
-        w = w * (torch.as_tensor((tn * index.normals[tri].numpy()).sum(1)) > 0.0).double()
+        facing = torch.as_tensor((_vertex_normals(x + u.numpy(), ft) * index.normals[tri].numpy()).sum(1))
+        if float(facing[w > 0].median()) < 0 if bool((w > 0).any()) else False:
+            facing = -facing
+        w = w * (facing > 0.0).double()
         goal = q - xt
         wl = torch.zeros(n, dtype=torch.float64)
         if lm_idx is not None:
