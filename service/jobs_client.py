@@ -38,6 +38,7 @@ import time
 import uuid
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 from urllib.parse import quote, urlsplit
@@ -427,7 +428,10 @@ def pack_dataset(folder: Path, out: Path) -> None:
 
 class Watch:
     """What a command shows on stderr while it follows a job: one line per state change and, when stderr is a
-    terminal (or ``bars`` is set), a tqdm bar of iterations with the loss, PSNR and the server's ETA."""
+    terminal (or ``bars`` is set), a tqdm bar of iterations with the loss, PSNR and the server's ETA.
+
+    An event stream starts with the job's history: events recorded before the job as first read (its
+    ``updated_at``) are counted but not shown again; the first read already showed where the job is."""
 
     def __init__(self, job_id: str, bars: bool | None = None, stream=None):
         self.job_id, self.stream = job_id, stream or sys.stderr
@@ -436,6 +440,7 @@ class Watch:
         self.state: str | None = None
         self.postfix: dict[str, str] = {}  # the latest of each figure (a report may carry only some)
         self.events = self.polls = 0
+        self.since: datetime | None = None
 
     def _say(self, text: str) -> None:
         if self.bar is not None:
@@ -475,6 +480,9 @@ class Watch:
 
     def on_event(self, event: Event) -> None:
         self.events += 1
+        recorded = _time(event.data.get("time"))
+        if recorded is not None and self.since is not None and recorded <= self.since:
+            return  # history the first read already summed up
         if event.event == "progress":
             self._progress(event.data)
         elif event.event == "state":
@@ -484,6 +492,8 @@ class Watch:
 
     def on_job(self, job: dict[str, Any]) -> None:
         self.polls += 1
+        if self.since is None:
+            self.since = _time(job.get("updated_at"))
         if isinstance(job.get("progress"), dict):
             self._progress(job["progress"])
         self._state(job.get("state"))
@@ -492,6 +502,17 @@ class Watch:
         if self.bar is not None:
             self.bar.close()
             self.bar = None
+
+
+def _time(value: Any) -> datetime | None:
+    """An ISO 8601 time the server wrote, timezone-aware; None when it is not one."""
+    if not isinstance(value, str):
+        return None
+    try:
+        parsed = datetime.fromisoformat(value)
+    except ValueError:
+        return None
+    return parsed if parsed.tzinfo is not None else parsed.replace(tzinfo=UTC)
 
 
 def _duration(seconds: float) -> str:

@@ -528,6 +528,18 @@ def test_a_job_deleted_while_followed_ends_the_wait():
         client.follow("job_fake", sleep=lambda s: None)
 
 
+def test_the_replayed_history_is_not_shown_again():
+    """A stream starts with the job's history: what was recorded before the first read is not printed again."""
+    out = io.StringIO()
+    watch = Watch("job_h", bars=False, stream=out)
+    watch.on_job({**job_json("running"), "updated_at": "2026-01-01T10:00:05Z"})
+    for i, (when, state) in enumerate([("10:00:00", "queued"), ("10:00:05", "running"), ("10:00:09", "cancelled")]):
+        watch.on_event(Event("state", {"state": state, "time": f"2026-01-01T{when}.000001+00:00"}, str(i)))
+    watch.on_event(Event("log", {"message": "old news", "time": "2026-01-01T09:59:00+00:00"}, "9"))
+    assert out.getvalue().splitlines() == ["job job_h: running", "job job_h: cancelled"]
+    assert watch.events == 4 and watch.state == "cancelled"
+
+
 def test_a_wait_times_out():
     def handler(request: httpx.Request) -> httpx.Response:
         if request.url.path.endswith("/events"):
