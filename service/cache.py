@@ -85,8 +85,8 @@ class AvatarCache:
         if avatar_id in self._loading:  # someone else is loading it: share that load
             self.metrics.cache_hits.inc()
             return await asyncio.shield(self._loading[avatar_id])
+        path = self.store.existing(avatar_id)  # NotFound: a lookup of nothing is neither a hit nor a miss
         self.metrics.cache_misses.inc()
-        path = self.store.existing(avatar_id)
         # Before mapping or reading anything: the file's size (a lower bound of the entry) must fit.
         admitted = _file_bytes(path, avatar_id)
         self._make_room(admitted, avatar_id, before_reading=True)

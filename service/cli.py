@@ -11,6 +11,8 @@ from pathlib import Path
 
 from render_core.tools import cli as core_cli
 
+from . import keys_cli
+
 
 def _settings(args: argparse.Namespace):
     """Settings from the environment with the command's options over them; None (after saying why) if invalid."""
@@ -183,6 +185,7 @@ def build_parser() -> argparse.ArgumentParser:
     from .bench_stream import CODECS
 
     p = core_cli.build_parser()
+    keys_cli.add_parser(p.commands)
     s = p.commands.add_parser("serve", help="run the streaming render service (gRPC + HTTP) until SIGTERM",
                               description="Settings come from BLENDSPLAT_* environment variables "
                                           "(see service/settings.py); these options override them.")

@@ -40,7 +40,7 @@ import uuid
 from collections import deque
 from collections.abc import AsyncIterable, AsyncIterator
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import astuple, dataclass, field
 
 import torch
 
@@ -53,11 +53,13 @@ from render_core.media.codecs import Encoder, make_encoder
 from render_core.media.pixels import to_rgba8
 
 from . import params
+from .auth import ADMIN_TENANT, TRUSTED, Access, Principal
 from .cache import AvatarCache, Loaded
-from .errors import InvalidArgument, ResourceExhausted, ServiceError, Unavailable, to_status
+from .errors import InvalidArgument, NotFound, ResourceExhausted, ServiceError, Unavailable, to_status
 from .metrics import Metrics
 from .settings import Settings
-from .store import BundleStore, check_id
+from .store import ID_PATTERN as AVATAR_ID_PATTERN  # noqa: F401 - the transports' avatar id pattern
+from .store import BundleStore, Owner, check_id
 
 log = logging.getLogger(__name__)
 
@@ -105,12 +107,17 @@ class Rendered:
     timings: pb.StageTimings
 
 
+def _nothing() -> None:
+    pass
+
+
 class Session:
     """One stream. Created by :meth:`Engine.open`; every method runs on the event loop."""
 
-    def __init__(self, engine: Engine, entry: Loaded, config: pb.SessionConfig, transport: str):
+    def __init__(self, engine: Engine, entry: Loaded, config: pb.SessionConfig, transport: str,
+                 principal: Principal = TRUSTED):
         s = engine.settings
-        self.engine, self.entry, self.transport = engine, entry, transport
+        self.engine, self.entry, self.transport, self.principal = engine, entry, transport, principal
         self.id = uuid.uuid4().hex
         avatar = entry.avatar
         self.out = params.output(config.width, config.height, config.codec, config.quality, s.max_size)
@@ -139,6 +146,7 @@ class Session:
         self.sent = self.dropped = 0
         self.input_done = False
         self.closed = False
+        self.release_slot = _nothing  # the key's stream slot (Engine.open sets it)
         self._replies: asyncio.Queue[pb.StreamResponse | None] = asyncio.Queue()
         self._queued_errors = 0
 
@@ -158,14 +166,18 @@ class Session:
             return
         kind = request.WhichOneof("msg")
         try:
+            if self.input_done and kind != "ack":
+                raise InvalidArgument("the client ended its input (end); only acks are taken now", field=kind or "msg")
             if kind == "frame":
                 self._submit(request.frame)
             elif kind == "ack":
                 self._ack(request.ack.index)
+            elif kind == "end":
+                self.end_input()
             elif kind == "open":
                 raise InvalidArgument("the session is already open; send frame or ack messages", field="open")
             else:
-                raise InvalidArgument("empty message: set one of open, frame, ack", field="msg")
+                raise InvalidArgument("empty message: set one of open, frame, ack, end", field="msg")
         except Exception as e:  # noqa: BLE001 - every failure becomes a status reply
             index = request.frame.index if kind == "frame" else 0
             self.error(to_status(e, index))
@@ -226,7 +238,7 @@ class Session:
             self.sent += 1
             m = self.engine.metrics
             m.frames.labels(self.out.codec).inc()
-            m.bytes_out.labels(self.out.codec).inc(len(result.data))
+            m.frame_bytes.labels(self.out.codec).inc(len(result.data))
             self._replies.put_nowait(pb.StreamResponse(frame=pb.RenderedFrame(
                 index=job.index, client_time_us=job.client_time_us, codec=self.out.codec_enum,
                 width=self.out.width, height=self.out.height, data=result.data, timings=result.timings,
@@ -234,7 +246,7 @@ class Session:
         self._maybe_finish()
 
     def error(self, status: pb.Status) -> None:
-        self.engine.metrics.errors.labels(pb.Code.Name(status.code)).inc()
+        self.engine.metrics.errors.labels(pb.Code.Name(status.code), self.transport).inc()
         if self._queued_errors >= MAX_QUEUED_ERRORS:
             return  # a client that sends bad messages and does not read: counted above, not queued
         self._queued_errors += 1
@@ -278,6 +290,9 @@ class Engine:
         # torch.set_num_threads anywhere in the process would change for the native renderer too).
         threads = settings.render_threads or len(os.sched_getaffinity(0))
         self.cache = AvatarCache(self.store, settings.cache_bytes, self.metrics, settings.backend, threads)
+        # who may do what: keys need the job database, so the process sets this (service/server.py); until then
+        # (tests, tools) every call is trusted
+        self.access = Access(settings.model_copy(update={"auth": "off"}), None)
         self.sessions: dict[str, Session] = {}
         self.draining = False  # not ready; new streams are refused
         self.frames_closed = False  # open streams take no new frames either
@@ -346,19 +361,28 @@ class Engine:
         self._pool.shutdown(wait=True, cancel_futures=True)
 
     # --------------------------------------------------------------------------------------------- sessions
-    async def open(self, config: pb.SessionConfig, transport: str) -> Session:
+    async def open(self, config: pb.SessionConfig, transport: str, principal: Principal = TRUSTED) -> Session:
         if self.draining:
             raise Unavailable("the server is shutting down; connect to another replica")
         if len(self.sessions) >= self.settings.max_sessions:
             raise ResourceExhausted(f"this replica serves at most {self.settings.max_sessions} streams")
-        entry = await self.cache.acquire(check_id(config.avatar_id))
+        self._check_read(principal, config.avatar_id, "avatar_id")
+        release_slot = self.access.take_stream(principal)
         try:
-            session = Session(self, entry, config, transport)
+            entry = await self.cache.acquire(check_id(config.avatar_id))
+        except BaseException:
+            release_slot()
+            raise
+        try:
+            session = Session(self, entry, config, transport, principal)
         except BaseException:
             self.cache.release(entry)
+            release_slot()
             raise
+        session.release_slot = release_slot
         if len(self.sessions) >= self.settings.max_sessions:  # others opened while the avatar loaded
             self.cache.release(entry)
+            release_slot()
             raise ResourceExhausted(f"this replica serves at most {self.settings.max_sessions} streams")
         session.vtime = self._vclock  # counts from now: no credit for time before it existed
         self.sessions[session.id] = session
@@ -371,6 +395,7 @@ class Engine:
         if self.sessions.pop(session.id, None) is None:
             return
         self.cache.release(session.entry)
+        session.release_slot()
         self.metrics.sessions.labels(session.transport).dec()
         self._pool.submit(session.encoder.close)  # after any encode of it still running
 
@@ -379,9 +404,10 @@ class Engine:
         session.finish(pb.CANCELLED, "the client went away")
 
     # ------------------------------------------------------------------------------------------ single frames
-    async def render_once(self, request: pb.RenderRequest) -> pb.RenderedFrame:
+    async def render_once(self, request: pb.RenderRequest, principal: Principal = TRUSTED) -> pb.RenderedFrame:
         if self.draining:
             raise Unavailable("the server is shutting down; connect to another replica")
+        self._check_read(principal, request.avatar_id, "avatar_id")
         entry = await self.cache.acquire(check_id(request.avatar_id))
         try:
             avatar = entry.avatar
@@ -459,29 +485,51 @@ class Engine:
                 m.stage.labels(stage).observe(getattr(t, f"{stage}_ms") / 1e3)
 
     # ---------------------------------------------------------------------------------------------- avatars
-    async def load(self, avatar_id: str) -> pb.AvatarInfo:
-        """Load an avatar into this replica's cache (NotFound; FailedPrecondition for a broken bundle)."""
-        await self.cache.load(check_id(avatar_id))
-        return self.avatar_info(avatar_id)
+    def _check_read(self, principal: Principal, avatar_id: str, field: str = "id") -> None:
+        """PermissionDenied unless ``principal`` may read the avatar (one that does not exist is left to the
+        caller's NotFound)."""
+        if principal.admin or not self.store.path(check_id(avatar_id, field)).is_file():
+            return
+        owner = self.store.owner(avatar_id)
+        principal.check_read(f"avatar {avatar_id!r}", owner.tenant, owner.public)
 
-    def unload(self, avatar_id: str) -> pb.AvatarInfo:
+    def _check_write(self, principal: Principal, avatar_id: str, field: str = "id") -> None:
+        if not principal.admin and self.store.path(check_id(avatar_id, field)).is_file():
+            principal.check_write(f"avatar {avatar_id!r}", self.store.owner(avatar_id).tenant)
+
+    async def load(self, avatar_id: str, principal: Principal = TRUSTED) -> pb.AvatarInfo:
+        """Load an avatar into this replica's cache (NotFound; FailedPrecondition for a broken bundle)."""
+        self._check_read(principal, avatar_id)
+        await self.cache.load(check_id(avatar_id))
+        return self.avatar_info(avatar_id, principal)
+
+    def unload(self, avatar_id: str, principal: Principal = TRUSTED) -> pb.AvatarInfo:
         """Drop an avatar from this replica's cache; the bundle stays, and streams using it keep it until they end.
         NotFound when the store has no such avatar."""
-        info = self.avatar_info(avatar_id)
+        info = self.avatar_info(avatar_id, principal)
+        self._check_write(principal, avatar_id)
+        self.access.audit(principal, "avatar.unload", avatar_id)
         self.cache.unload(avatar_id)
         info.loaded, info.memory_bytes = False, 0
         return info
 
-    async def replace(self, avatar_id: str, chunks: AsyncIterable[bytes], declared: int | None = None
-                      ) -> pb.AvatarInfo:
+    async def replace(self, avatar_id: str, chunks: AsyncIterable[bytes], declared: int | None = None,
+                      principal: Principal = TRUSTED) -> pb.AvatarInfo:
         """Create or replace an avatar's bundle from an upload's bytes (``declared``: its announced size, when
         known). The upload is staged and fully validated before it replaces anything: an invalid or oversize one
         (InvalidArgument naming ``bundle``) leaves the store unchanged. The cached copy is dropped, so new
         sessions get the new bundle; running ones keep theirs."""
         check_id(avatar_id)
+        exists = self.store.path(avatar_id).is_file()
+        if exists:  # a new id is the caller's; an existing one must be its tenant's
+            self._check_write(principal, avatar_id)
+        previous = self.store.owner(avatar_id) if exists else None
+        owner = previous if principal.admin and previous is not None else Owner(principal.owner or ADMIN_TENANT)
         limit = self.settings.max_upload_bytes
         if declared is not None and declared > limit:
             raise InvalidArgument(f"the upload is {declared} bytes; the limit is {limit}", field="bundle")
+        self.access.count_upload(principal)
+        self.access.check_quota(principal, declared or 0)
         fd, staged = self.store.staging()
         try:
             size = 0
@@ -491,13 +539,37 @@ class Engine:
                     if size > limit:
                         raise InvalidArgument(f"the upload exceeds the limit of {limit} bytes", field="bundle")
                     f.write(chunk)
-            await asyncio.to_thread(self.store.commit, staged, avatar_id)
+            self.access.check_quota(principal, size)
+            await asyncio.to_thread(self.store.commit, staged, avatar_id, owner)
         finally:
             staged.unlink(missing_ok=True)
+        self.access.audit(principal, "avatar.replace" if exists else "avatar.create", avatar_id, bytes=size)
         self.cache.unload(avatar_id)
-        return self.avatar_info(avatar_id)
+        return self.avatar_info(avatar_id, principal)
 
-    def avatar_info(self, avatar_id: str) -> pb.AvatarInfo:
+    async def delete(self, avatar_id: str, principal: Principal = TRUSTED) -> None:
+        """Delete an avatar: its bundle and the files beside it (verification record, owner), then its cached copy
+        in this process. NotFound when the store has none. The files go first, so a session opened meanwhile finds
+        the avatar gone rather than caching it again; sessions open on it keep their copy until they end (other
+        replicas find it gone at their next session)."""
+        path = self.store.existing(check_id(avatar_id))
+        self._check_write(principal, avatar_id)
+
+        def remove() -> None:
+            try:
+                path.unlink()
+            except FileNotFoundError:
+                raise NotFound(f"no avatar {avatar_id!r} in the bundle store", field="avatar_id") from None
+            for sidecar in self.store.sidecars(avatar_id):
+                sidecar.unlink(missing_ok=True)
+
+        await asyncio.to_thread(remove)
+        self.cache.unload(avatar_id)
+        self.access.audit(principal, "avatar.delete", avatar_id)
+
+    def avatar_info(self, avatar_id: str, principal: Principal = TRUSTED) -> pb.AvatarInfo:
+        self.store.existing(check_id(avatar_id, "id"))
+        self._check_read(principal, avatar_id)
         entry = self.cache.get(avatar_id)
         path = self.store.existing(avatar_id)
         if entry is not None:
@@ -516,9 +588,12 @@ class Engine:
             precision=m.get("precision", ""), face_model=str(m.get("face_model", "")),
             file_bytes=path.stat().st_size, digest=m.get("digest", ""))
 
-    def list_avatars(self) -> list[pb.AvatarInfo]:
+    def list_avatars(self, principal: Principal = TRUSTED) -> list[pb.AvatarInfo]:
+        """The avatars ``principal`` may read (its tenant's and the public ones; admin keys: all)."""
         out = []
         for avatar_id in self.store.ids():
+            if not principal.admin and not principal.may_read(*astuple(self.store.owner(avatar_id))):
+                continue
             try:
                 out.append(self.avatar_info(avatar_id))
             except (ServiceError, Exception) as e:  # noqa: BLE001 - one broken file must not hide the others

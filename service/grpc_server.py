@@ -16,13 +16,15 @@ from typing import TypeVar
 
 import grpc
 from grpc_health.v1 import health, health_pb2, health_pb2_grpc
-from grpc_reflection.v1alpha import reflection
+from grpc_reflection.v1alpha import reflection, reflection_pb2
 
 from blendsplat.v1 import render_pb2 as pb
 from blendsplat.v1 import render_pb2_grpc as pb_grpc
 
+from .auth import Principal, bearer
 from .engine import Engine
 from .errors import InvalidArgument, grpc_code, to_status
+from .metrics import Metrics
 
 log = logging.getLogger(__name__)
 SERVICE_NAME = pb.DESCRIPTOR.services_by_name["RenderService"].full_name
@@ -30,7 +32,8 @@ Reply = TypeVar("Reply")
 
 
 @contextlib.asynccontextmanager
-async def status_on_error(context: grpc.aio.ServicerContext) -> AsyncIterator[None]:
+async def status_on_error(context: grpc.aio.ServicerContext, metrics: Metrics | None = None
+                          ) -> AsyncIterator[None]:
     """End the call with the status of any error raised inside: its code from :func:`service.errors.to_status`,
     its details ``"field: message"`` (gRPC has no field slot). Errors that are not typed are INTERNAL, logged."""
     try:
@@ -39,6 +42,8 @@ async def status_on_error(context: grpc.aio.ServicerContext) -> AsyncIterator[No
         raise  # already a status
     except Exception as exc:  # noqa: BLE001 - every failure becomes a status
         status = to_status(exc)
+        if metrics is not None:
+            metrics.errors.labels(pb.Code.Name(status.code), "grpc").inc()
         if status.code == pb.INTERNAL:
             log.exception("internal error", exc_info=exc)
         details = f"{status.field}: {status.message}" if status.field else status.message
@@ -49,26 +54,40 @@ def unary(method: Callable[..., Awaitable[Reply]]) -> Callable[..., Awaitable[Re
     """A unary RPC whose errors end the call through :func:`status_on_error`."""
     @functools.wraps(method)
     async def rpc(self, request, context: grpc.aio.ServicerContext) -> Reply:
-        async with status_on_error(context):
+        async with status_on_error(context, self.engine.metrics):
             return await method(self, request, context)
     return rpc
+
+
+# What each RPC needs (service/auth.py); tests/test_auth.py checks every RPC of the proto is here.
+SCOPES = {"RenderStream": "render", "Render": "render", "ListAvatars": "render", "GetAvatar": "render",
+          "LoadAvatar": "render", "UnloadAvatar": "avatars:write"}
 
 
 class RenderService(pb_grpc.RenderServiceServicer):
     def __init__(self, engine: Engine):
         self.engine = engine
 
+    async def caller(self, context: grpc.aio.ServicerContext, rpc: str) -> Principal:
+        """The caller of an RPC, from ``authorization: Bearer <key>`` metadata: Unauthenticated, PermissionDenied
+        without the RPC's scope (raised inside :func:`status_on_error`, they end the call with that code)."""
+        metadata = {k.lower(): v for k, v in (context.invocation_metadata() or ()) if isinstance(v, str)}
+        principal = await asyncio.to_thread(self.engine.access.authenticate, bearer(metadata.get("authorization")))
+        return principal.require(SCOPES[rpc])
+
     async def RenderStream(self, request_iterator: AsyncIterator[pb.StreamRequest],
                            context: grpc.aio.ServicerContext) -> AsyncIterator[pb.StreamResponse]:
         requests = aiter(request_iterator)
+        async with status_on_error(context, self.engine.metrics):
+            principal = await self.caller(context, "RenderStream")
         try:
             first = await anext(requests)
         except StopAsyncIteration:
             return
-        async with status_on_error(context):
+        async with status_on_error(context, self.engine.metrics):
             if first.WhichOneof("msg") != "open":
                 raise InvalidArgument("the first message must open a session", field="open")
-            session = await self.engine.open(first.open, "grpc")
+            session = await self.engine.open(first.open, "grpc", principal)
 
         async def pump() -> None:
             try:
@@ -92,23 +111,23 @@ class RenderService(pb_grpc.RenderServiceServicer):
 
     @unary
     async def Render(self, request: pb.RenderRequest, context) -> pb.RenderResponse:
-        return pb.RenderResponse(frame=await self.engine.render_once(request))
+        return pb.RenderResponse(frame=await self.engine.render_once(request, await self.caller(context, "Render")))
 
     @unary
     async def ListAvatars(self, request: pb.ListAvatarsRequest, context) -> pb.ListAvatarsResponse:
-        return pb.ListAvatarsResponse(avatars=self.engine.list_avatars())
+        return pb.ListAvatarsResponse(avatars=self.engine.list_avatars(await self.caller(context, "ListAvatars")))
 
     @unary
     async def GetAvatar(self, request: pb.GetAvatarRequest, context) -> pb.AvatarInfo:
-        return self.engine.avatar_info(request.id)
+        return self.engine.avatar_info(request.id, await self.caller(context, "GetAvatar"))
 
     @unary
     async def LoadAvatar(self, request: pb.LoadAvatarRequest, context) -> pb.AvatarInfo:
-        return await self.engine.load(request.id)
+        return await self.engine.load(request.id, await self.caller(context, "LoadAvatar"))
 
     @unary
     async def UnloadAvatar(self, request: pb.UnloadAvatarRequest, context) -> pb.AvatarInfo:
-        return self.engine.unload(request.id)
+        return self.engine.unload(request.id, await self.caller(context, "UnloadAvatar"))
 
 
 def connection_options(settings) -> list[tuple[str, int]]:
@@ -120,6 +139,21 @@ def connection_options(settings) -> list[tuple[str, int]]:
         options += [("grpc.max_connection_age_ms", age),
                     ("grpc.max_connection_age_grace_ms", settings.grpc_max_connection_age_grace_seconds)]
     return [(name, max(1, round(seconds * 1000))) for name, seconds in options]
+
+
+REFLECTION_V1 = "grpc.reflection.v1.ServerReflection"
+
+
+def _reflection_v1(names) -> grpc.GenericRpcHandler:
+    """Server reflection as ``grpc.reflection.v1`` beside grpcio-reflection's ``v1alpha`` (clients that speak only
+    v1 fail otherwise). The two protocols' messages are the same on the wire (v1 is v1alpha renamed), so v1 calls
+    are served by the v1alpha servicer."""
+    servicer = reflection.aio.ReflectionServicer(names)
+    handler = grpc.stream_stream_rpc_method_handler(
+        servicer.ServerReflectionInfo,
+        request_deserializer=reflection_pb2.ServerReflectionRequest.FromString,
+        response_serializer=reflection_pb2.ServerReflectionResponse.SerializeToString)
+    return grpc.method_handlers_generic_handler(REFLECTION_V1, {"ServerReflectionInfo": handler})
 
 
 class GrpcServer:
@@ -138,10 +172,15 @@ class GrpcServer:
         pb_grpc.add_RenderServiceServicer_to_server(RenderService(engine), self.server)
         self.health = health.aio.HealthServicer()
         health_pb2_grpc.add_HealthServicer_to_server(self.health, self.server)
-        reflection.enable_server_reflection((SERVICE_NAME, health.SERVICE_NAME, reflection.SERVICE_NAME),
-                                            self.server)
+        names = (SERVICE_NAME, health.SERVICE_NAME, reflection.SERVICE_NAME, REFLECTION_V1)
+        reflection.enable_server_reflection(names, self.server)
+        self.server.add_generic_rpc_handlers((_reflection_v1(names),))
         address = f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
-        self.port = self.server.add_insecure_port(address)
+        if s.tls_cert_file is not None:
+            credentials = grpc.ssl_server_credentials([(s.tls_key_file.read_bytes(), s.tls_cert_file.read_bytes())])
+            self.port = self.server.add_secure_port(address, credentials)
+        else:
+            self.port = self.server.add_insecure_port(address)
 
     async def start(self) -> None:
         await self.server.start()

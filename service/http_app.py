@@ -21,23 +21,28 @@ import json
 import logging
 import uuid
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
 from fastapi import APIRouter, FastAPI, Request, WebSocket, WebSocketDisconnect
+from fastapi import Path as PathParam
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, JSONResponse, Response
 from google.protobuf import json_format
 from google.protobuf.message import DecodeError
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.routing import compile_path
 
 from blendsplat.v1 import render_pb2 as pb
 from render_core.errors import BlendsplatError
 
-from .engine import Engine
+from .auth import Access, RateLimited, Unauthenticated
+from .engine import AVATAR_ID_PATTERN, Engine
 from .errors import InvalidArgument, ServiceError, Unavailable, http_status, to_status
+from .http_auth import OPEN_PATHS, Caller, websocket_caller, websocket_subprotocol
 from .jobs_api import ROUTERS as TRAINING_ROUTERS
 from .jobs_api import Training
+from .openapi import document_errors, render_request_schema
 from .uploads import UploadTooLarge
 
 log = logging.getLogger(__name__)
@@ -69,9 +74,11 @@ _HTTP_ONLY = ((UploadTooLarge, 413), (BodyTooLarge, 413), (BodyTimeout, 408))
 _CLOSE = (BodyTooLarge, BodyTimeout, BodyRefused)
 
 
-def _error_response(exc: BaseException, where: str = "") -> JSONResponse:
+def _error_response(exc: BaseException, where: str = "", metrics=None) -> JSONResponse:
     status = to_status(exc)
-    body = {"error": as_json(status) | {"code": pb.Code.Name(status.code)}}
+    if metrics is not None:
+        metrics.errors.labels(pb.Code.Name(status.code), "http").inc()
+    body = {"error": {"code": pb.Code.Name(status.code), "message": status.message, "field": status.field}}
     if status.code == pb.INTERNAL:
         error_id = uuid.uuid4().hex[:16]
         log.error("internal error %s%s: %s: %s", error_id, f" ({where})" if where else "", type(exc).__name__,
@@ -79,15 +86,49 @@ def _error_response(exc: BaseException, where: str = "") -> JSONResponse:
         body["error"]["message"] = f"{status.message}; error id {error_id}"
         body["error"]["errorId"] = error_id
     http = next((code for kind, code in _HTTP_ONLY if isinstance(exc, kind)), None) or http_status(status.code)
-    headers = {"Connection": "close"} if isinstance(exc, _CLOSE) else None
-    return JSONResponse(body, status_code=http, headers=headers)
+    headers = {"Connection": "close"} if isinstance(exc, _CLOSE) else {}
+    if isinstance(exc, RateLimited):
+        headers["Retry-After"] = str(exc.retry_after)
+    if isinstance(exc, Unauthenticated):
+        headers["WWW-Authenticate"] = 'Bearer realm="blendsplat"'
+    return JSONResponse(body, status_code=http, headers=headers or None)
 
 
-def _http_exception(exc: StarletteHTTPException) -> JSONResponse:
+def routes(app: FastAPI, items=None, prefix: str = "") -> list[tuple[str, Any]]:
+    """Every route of ``app`` with its full path (FastAPI keeps an included router as one entry)."""
+    out = []
+    for route in app.routes if items is None else items:
+        if hasattr(route, "original_router"):
+            out += routes(app, route.original_router.routes, prefix + route.include_context.prefix)
+        elif hasattr(route, "path"):
+            out.append((prefix + route.path, route))
+    return out
+
+
+def _allowed_methods(app: FastAPI, path: str) -> list[str]:
+    """Every method some route serves at ``path`` (a 405's ``Allow``: Starlette names only the first route's)."""
+    if not hasattr(app.state, "method_table"):
+        app.state.method_table = [(compile_path(full)[0], set(getattr(route, "methods", None) or ()))
+                                  for full, route in routes(app)]
+    allowed = set().union(*(methods for regex, methods in app.state.method_table if regex.match(path)))
+    return sorted(allowed | ({"HEAD"} if "GET" in allowed else set()))
+
+
+def _http_exception(request: Request, exc: StarletteHTTPException) -> JSONResponse:
     """Starlette's own HTTP errors (no such route, method not allowed) in the one error shape, status kept."""
     code = {404: pb.NOT_FOUND, 503: pb.UNAVAILABLE}.get(exc.status_code, pb.INVALID_ARGUMENT)
-    body = {"error": {"code": pb.Code.Name(code), "message": str(exc.detail), "field": ""}}
-    return JSONResponse(body, status_code=exc.status_code, headers=getattr(exc, "headers", None))
+    message = str(exc.detail)
+    headers = dict(getattr(exc, "headers", None) or {})
+    if exc.status_code == 400:  # FastAPI's "error parsing the body": an invalid request like any other (422)
+        body = {"error": {"code": "INVALID_ARGUMENT", "message": f"the body is not valid JSON ({message})",
+                          "field": "body"}}
+        return JSONResponse(body, status_code=422)
+    if exc.status_code == 405:
+        allowed = _allowed_methods(request.app, request.url.path)
+        headers["Allow"] = ", ".join(allowed)
+        message = f"{request.method} is not served at {request.url.path[:200]}; it serves {', '.join(allowed)}"
+    body = {"error": {"code": pb.Code.Name(code), "message": message, "field": ""}}
+    return JSONResponse(body, status_code=exc.status_code, headers=headers or None)
 
 
 class RequestGuard:
@@ -141,7 +182,8 @@ class RequestGuard:
         try:
             await self.app(scope, guarded_receive, tracked_send)
         except Exception as exc:  # noqa: BLE001 - nothing mapped it: a typed 500, logged with its id
-            response = _error_response(exc, f"{scope.get('method', '')} {scope.get('path', '')}")  # logs it
+            response = _error_response(exc, f"{scope.get('method', '')} {scope.get('path', '')}",  # logs it
+                                       scope["app"].state.engine.metrics if "app" in scope else None)
             if started:  # too late for an answer: uvicorn closes the connection
                 return
             await response(scope, receive, send)
@@ -171,35 +213,46 @@ def _engine(request: Request | WebSocket) -> Engine:
 
 # ------------------------------------------------------------------------------------------------------- avatars
 avatars = APIRouter(prefix="/v1/avatars", tags=["avatars"])
+AvatarId = Annotated[str, PathParam(pattern=AVATAR_ID_PATTERN.pattern, max_length=128, examples=["demo"],
+                                    description="an avatar id: letters, digits, '.', '_', '-' (at most 128, "
+                                                "starting with a letter or digit)")]
 
 
 @avatars.get("", summary="Avatars in the bundle store (and whether this replica has them loaded)")
-async def list_avatars(request: Request) -> dict:
-    return as_json(pb.ListAvatarsResponse(avatars=_engine(request).list_avatars()))
+async def list_avatars(request: Request, principal: Caller("render")) -> dict:
+    return as_json(pb.ListAvatarsResponse(avatars=_engine(request).list_avatars(principal)))
 
 
 @avatars.get("/{avatar_id}", summary="Describe one avatar: counts, expression and joint names, precision")
-async def get_avatar(avatar_id: str, request: Request) -> dict:
-    return as_json(_engine(request).avatar_info(avatar_id))
+async def get_avatar(avatar_id: AvatarId, request: Request, principal: Caller("render")) -> dict:
+    return as_json(_engine(request).avatar_info(avatar_id, principal))
 
 
 @avatars.put("/{avatar_id}", status_code=201, summary="Upload (create or replace) an avatar bundle",
-             description="The body is the bundle file (application/octet-stream). It is fully validated before it "
+             description="The body is the bundle file (any Content-Type). It is fully validated before it "
                          "replaces anything; an invalid or oversize upload leaves the store unchanged.")
-async def put_avatar(avatar_id: str, request: Request) -> dict:
+async def put_avatar(avatar_id: AvatarId, request: Request, principal: Caller("avatars:write")) -> dict:
     declared = request.headers.get("content-length", "")  # a plain number, else the stream's size decides
     size = int(declared) if declared.isascii() and declared.isdigit() and len(declared) <= 18 else None
-    return as_json(await _engine(request).replace(avatar_id, request.stream(), size))
+    return as_json(await _engine(request).replace(avatar_id, request.stream(), size, principal))
+
+
+@avatars.delete("/{avatar_id}", status_code=204, response_class=Response,
+                summary="Delete an avatar: its bundle, the files beside it, and this replica's cached copy",
+                description="Streams already open on it keep their copy until they end; new ones get NOT_FOUND.")
+async def delete_avatar(avatar_id: AvatarId, request: Request, principal: Caller("avatars:write")) -> Response:
+    await _engine(request).delete(avatar_id, principal)
+    return Response(status_code=204)
 
 
 @avatars.post("/{avatar_id}/load", summary="Load an avatar into this replica's cache")
-async def load_avatar(avatar_id: str, request: Request) -> dict:
-    return as_json(await _engine(request).load(avatar_id))
+async def load_avatar(avatar_id: AvatarId, request: Request, principal: Caller("render")) -> dict:
+    return as_json(await _engine(request).load(avatar_id, principal))
 
 
 @avatars.post("/{avatar_id}/unload", summary="Drop an avatar from this replica's cache (the bundle stays)")
-async def unload_avatar(avatar_id: str, request: Request) -> dict:
-    return as_json(_engine(request).unload(avatar_id))
+async def unload_avatar(avatar_id: AvatarId, request: Request, principal: Caller("avatars:write")) -> dict:
+    return as_json(_engine(request).unload(avatar_id, principal))
 
 
 # --------------------------------------------------------------------------------------------------- rendering
@@ -207,11 +260,12 @@ render = APIRouter(tags=["render"])
 
 
 @render.post("/v1/render", summary="Render one frame",
-             description="The body is a RenderRequest in protobuf JSON, e.g. {\"avatarId\": \"demo\", \"width\": 512,"
-                         " \"codec\": \"CODEC_PNG\", \"frame\": {\"namedCoefficients\": {\"exp_00\": 1}}}. The answer "
-                         "is the encoded image; X-Blendsplat-Timings holds the per-stage milliseconds.",
+             description="The body is a RenderRequest in protobuf JSON, e.g. {\"avatarId\": \"demo\", \"width\": 256,"
+                         " \"codec\": \"CODEC_PNG\", \"frame\": {\"index\": 1}} (named coefficients are the "
+                         "avatar's expression names: GET /v1/avatars/{id}). The answer is the encoded image; "
+                         "X-Blendsplat-Timings holds the per-stage milliseconds.",
              response_class=Response)
-async def render_frame(request: Request) -> Response:
+async def render_frame(request: Request, principal: Caller("render")) -> Response:
     limit = _engine(request).settings.max_message_bytes
     body = await _bounded_body(request, limit)
     try:
@@ -219,7 +273,7 @@ async def render_frame(request: Request) -> Response:
     except (json_format.ParseError, UnicodeDecodeError, RecursionError, ValueError, TypeError) as e:
         problem = "nested too deeply" if isinstance(e, RecursionError) else str(e)[:300]
         raise InvalidArgument(f"not a RenderRequest in JSON (UTF-8): {problem}", field="body") from None
-    frame = await _engine(request).render_once(message)
+    frame = await _engine(request).render_once(message, principal)
     return Response(frame.data, media_type=MEDIA_TYPES[frame.codec],
                     headers={"X-Blendsplat-Timings": json.dumps(as_json(frame.timings))})
 
@@ -257,7 +311,11 @@ async def _receive(ws: WebSocket) -> tuple[pb.StreamRequest | None, bool, str | 
 async def stream(ws: WebSocket) -> None:
     """RenderStream over a WebSocket: binary messages carry protobuf, text messages protobuf's JSON mapping."""
     engine = _engine(ws)
-    await ws.accept()
+    try:
+        principal, refused = await websocket_caller(ws, "render"), None
+    except ServiceError as e:  # told in the stream (after its first message: JSON or binary), then closed
+        principal, refused = None, e
+    await ws.accept(subprotocol=websocket_subprotocol(ws))
     json_mode = False
 
     async def send(reply: pb.StreamResponse) -> None:
@@ -268,15 +326,18 @@ async def stream(ws: WebSocket) -> None:
 
     async def refuse(exc: BaseException) -> None:
         status = to_status(exc)
+        engine.metrics.errors.labels(pb.Code.Name(status.code), "websocket").inc()
         await send(pb.StreamResponse(status=status))
         await ws.close(_WS_CLOSE.get(status.code, 1008), status.message[:120])
 
     try:
         first, json_mode, problem = await _receive(ws)
+        if refused is not None:
+            return await refuse(refused)
         if first is None or first.WhichOneof("msg") != "open":
             return await refuse(InvalidArgument(problem or "the first message must open a session", field="open"))
         try:
-            session = await engine.open(first.open, "websocket")
+            session = await engine.open(first.open, "websocket", principal)
         except Exception as e:  # noqa: BLE001 - mapped to a status
             return await refuse(e)
     except WebSocketDisconnect:
@@ -317,13 +378,16 @@ _ADAPTER_UPLOAD = (16 << 20) + (2 << 20)  # the model's limit (service/adapters.
 
 @adapters.get("", summary="Retargeting adapters in the store (ONNX models mapping a tracker's coefficients to a "
                           "face model's)")
-async def list_adapters(request: Request) -> dict:
-    return {"adapters": _engine(request).adapters.list()}
+async def list_adapters(request: Request, principal: Caller("render")) -> dict:
+    return {"adapters": [a for a in _engine(request).adapters.list()
+                         if principal.may_read(a.get("tenant"), a.get("tenant") is None)]}
 
 
 @adapters.get("/{adapter_id}", summary="One adapter: its manifest (source and target names), owner, size, digest")
-async def get_adapter(adapter_id: str, request: Request) -> dict:
-    return _engine(request).adapters.info(adapter_id)
+async def get_adapter(adapter_id: str, request: Request, principal: Caller("render")) -> dict:
+    info = _engine(request).adapters.info(adapter_id)
+    principal.check_read(f"adapter {adapter_id!r}", info.get("tenant"), info.get("tenant") is None)
+    return info
 
 
 @adapters.put("/{adapter_id}", status_code=201, summary="Upload (create or replace) a retargeting adapter",
@@ -332,7 +396,8 @@ async def get_adapter(adapter_id: str, request: Request) -> dict:
                           "manifest=@m.json -F model=@a.onnx. Both are validated (size, opsets, operators, no "
                           "external data, shapes against the manifest, loads in onnxruntime) before anything is "
                           "stored; a refusal is 422 naming the reason's field.")
-async def put_adapter(adapter_id: str, request: Request) -> dict:
+async def put_adapter(adapter_id: str, request: Request, principal: Caller("avatars:write")) -> dict:
+    _check_adapter_write(request, adapter_id, principal)
     body = await _bounded_body(request, _ADAPTER_UPLOAD)  # read once, bounded; the form parses these bytes
 
     async def replay() -> dict:
@@ -349,11 +414,25 @@ async def put_adapter(adapter_id: str, request: Request) -> dict:
         if part is None:
             raise InvalidArgument(f"the {name} part is missing", field=name)
         parts[name] = part.encode() if isinstance(part, str) else await part.read()
-    return await asyncio.to_thread(_engine(request).adapters.put, adapter_id, parts["model"], parts["manifest"])
+    info = await asyncio.to_thread(_engine(request).adapters.put, adapter_id, parts["model"], parts["manifest"],
+                                   None if principal.admin else principal.tenant)
+    Access.audit(principal, "adapter.put", adapter_id)
+    return info
+
+
+def _check_adapter_write(request: Request, adapter_id: str, principal) -> None:
+    """Adapters without a tenant are the deployment's (every key may use them; admin keys change them)."""
+    try:
+        info = _engine(request).adapters.info(adapter_id)
+    except ServiceError:
+        return  # a new id (or an invalid one, refused by the store with its reason)
+    principal.check_write(f"adapter {adapter_id!r}", info.get("tenant"))
 
 
 @adapters.delete("/{adapter_id}", summary="Delete an adapter (sessions using it keep their loaded copy)")
-async def delete_adapter(adapter_id: str, request: Request) -> dict:
+async def delete_adapter(adapter_id: str, request: Request, principal: Caller("avatars:write")) -> dict:
+    _check_adapter_write(request, adapter_id, principal)
+    Access.audit(principal, "adapter.delete", adapter_id)
     return _engine(request).adapters.delete(adapter_id)
 
 
@@ -415,17 +494,27 @@ def create_app(engine: Engine, training: Training | None = None) -> FastAPI:
             app.include_router(router)
 
     async def on_error(request: Request, exc: Exception) -> JSONResponse:
-        return _error_response(exc)
+        return _error_response(exc, metrics=engine.metrics)
 
     async def on_invalid(request: Request, exc: Exception) -> JSONResponse:
-        return _error_response(_validation_error(exc))
+        return _error_response(_validation_error(exc), metrics=engine.metrics)
 
     async def on_http_exception(request: Request, exc: Exception) -> JSONResponse:
-        return _http_exception(exc)
+        response = _http_exception(request, exc)
+        code = json.loads(response.body)["error"]["code"]
+        engine.metrics.errors.labels(code, "http").inc()
+        return response
 
     app.add_exception_handler(ServiceError, on_error)
     app.add_exception_handler(BlendsplatError, on_error)
     app.add_exception_handler(RequestValidationError, on_invalid)
     app.add_exception_handler(StarletteHTTPException, on_http_exception)
     app.add_middleware(RequestGuard, body_timeout=engine.settings.body_timeout_seconds, closing=app.state.closing)
+    bundle = {"schema": {"type": "string", "format": "binary"}}  # any bytes: the server validates the bundle
+    document_errors(app, OPEN_PATHS, bodies={
+        ("/v1/render", "post"): {"required": True, "content": {"application/json": {
+            "schema": render_request_schema(engine.settings.max_size, AVATAR_ID_PATTERN.pattern)}}},
+        ("/v1/avatars/{avatar_id}", "put"): {"required": True, "content": {"application/octet-stream": bundle},
+                                             "description": "the bundle file (safetensors, schema 2)"},
+    })
     return app

@@ -14,7 +14,6 @@ error shape of :mod:`service.errors`)::
     GET    /v1/jobs/{id}/artefacts/{name}   report | summary | curves | contact-sheet | preview | log
     GET    /v1/jobs/{id}/events             server-sent events: the job's history, then live (service/job_events.py)
     DELETE /v1/jobs/{id}                    204: the row, its events and its work folder
-    DELETE /v1/avatars/{id}                 204: the bundle, its verification record and cached copies
 
 The handlers are thin: :class:`Training` holds the stores (:class:`~service.jobs.JobStore`,
 :class:`~service.uploads.UploadStore`) and the few operations that span them (deletion with what is derived,
@@ -48,19 +47,20 @@ leaves nothing behind.
 
 from __future__ import annotations
 
-import asyncio
 import logging
 import os
+import re
 import secrets
 import shutil
 import time
-from collections.abc import AsyncIterator, Iterator
+from collections.abc import AsyncIterator, Callable, Iterator
 from dataclasses import dataclass
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, Literal
 
 from fastapi import APIRouter, Header, Query, Request, Response
+from fastapi import Path as PathParam
 from fastapi.responses import FileResponse, StreamingResponse
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_serializer
 from python_multipart.exceptions import MultipartParseError
@@ -69,19 +69,20 @@ from starlette.requests import ClientDisconnect
 
 from . import job_events
 from .archive import ArchiveError
+from .auth import TRUSTED, Access, Principal
 from .errors import FailedPrecondition, InvalidArgument, NotFound
+from .http_auth import Caller
 from .jobs import Job, JobState, JobStore
+from .openapi import ErrorBody
 from .settings import Settings
 from .store import ID_PATTERN as AVATAR_ID_PATTERN
-from .store import RECORD as VERIFIED_RECORD
-from .store import check_id
+from .store import Owner
 from .uploads import ID_PATTERN as UPLOAD_ID_PATTERN
 from .uploads import InvalidDataset, Upload, UploadStore, UploadTooLarge
 from .webhooks import MAX_URL_CHARS as MAX_WEBHOOK_URL
 from .webhooks import check_url as check_webhook_url
 
 if TYPE_CHECKING:
-    from .engine import Engine
     from .metrics import Metrics
 
 log = logging.getLogger(__name__)
@@ -96,6 +97,10 @@ _MAX_OTHER_PARTS = 64 << 10  # bytes of form fields other than ``file``
 _PAGE = 500  # jobs read per query when scanning
 
 # name in the URL -> (file in the work folder, media type); the worker writes them (service/worker.py)
+# http(s)://host[:port][/path...]: no credentials, no whitespace (webhooks.check_url checks the rest)
+WEBHOOK_URL_PATTERN = (r"^https?://[A-Za-z0-9][A-Za-z0-9.-]{0,252}(:([1-9][0-9]{0,3}|[1-5][0-9]{4}|6[0-4][0-9]{3}|"
+                       r"65[0-4][0-9]{2}|655[0-2][0-9]|6553[0-5]))?(/[!-~]*)?$")
+JOB_ID_PATTERN = re.compile(r"^job_[A-Za-z0-9_-]{1,60}$")
 ARTEFACTS: dict[str, tuple[str, str]] = {
     "report": ("report.json", "application/json"),
     "summary": ("summary.json", "application/json"),
@@ -107,17 +112,6 @@ ARTEFACTS: dict[str, tuple[str, str]] = {
 
 
 # ----------------------------------------------------------------------------------------------------- models
-class ErrorDetail(BaseModel):
-    model_config = ConfigDict(extra="allow")
-    code: str = Field(description="the status code's name, e.g. INVALID_ARGUMENT")
-    message: str
-    field: str = Field("", description="the request field at fault, when there is one")
-
-
-class ErrorBody(BaseModel):
-    """Every error answer: ``{"error": {"code", "message", "field"}}`` (service/errors.py)."""
-
-    error: ErrorDetail
 
 
 class UploadLinks(BaseModel):
@@ -167,7 +161,7 @@ class JobRequest(BaseModel):
                                    description="longest image side to train at (accepted; today the worker trains at "
                                                "the dataset's own resolution and says so in the job's log)")
     seed: int = Field(0, ge=0, le=2**32 - 1)
-    webhook_url: str | None = Field(None, min_length=8, max_length=MAX_WEBHOOK_URL,
+    webhook_url: str | None = Field(None, min_length=8, max_length=MAX_WEBHOOK_URL, pattern=WEBHOOK_URL_PATTERN,
                                     description="http(s) URL that gets a signed POST on every state change of the job "
                                                 "(service/webhooks.py); left out of the spec when not given")
 
@@ -260,6 +254,20 @@ class Training:
     def __init__(self, settings: Settings, jobs: JobStore, uploads: UploadStore, metrics: Metrics | None = None):
         self.settings, self.jobs, self.uploads, self.metrics = settings, jobs, uploads, metrics
         self.work_root = Path(settings.work_dir)
+        self.access: Access | None = None  # limits and audit (the process sets it: service/server.py)
+        self.owner_of_avatar: Callable[[str], Owner | None] | None = None  # an existing avatar's owner
+
+    # ------------------------------------------------------------------------------------------- ownership
+    def job_for(self, job_id: str, principal: Principal) -> Job:
+        """The job, when ``principal`` may see it (its tenant's; admin: any): NotFound, PermissionDenied."""
+        job = self.jobs.get(job_id)
+        principal.check_read(f"job {job_id}", job.tenant)
+        return job
+
+    def upload_for(self, upload_id: str, principal: Principal) -> Upload:
+        upload = self.uploads.get(upload_id)
+        principal.check_read(f"upload {upload_id}", upload.tenant)
+        return upload
 
     @classmethod
     def open(cls, settings: Settings, metrics: Metrics | None = None) -> Training:
@@ -281,12 +289,21 @@ class Training:
         self.jobs.close()
 
     # ------------------------------------------------------------------------------------------------ jobs
-    def submit(self, request: JobRequest, idempotency_key: str | None) -> tuple[Job, bool]:
+    def submit(self, request: JobRequest, idempotency_key: str | None,
+               principal: Principal = TRUSTED) -> tuple[Job, bool]:
         """Queue a job for an existing upload; (the job, whether this call created it). A repeated
-        ``idempotency_key`` with the same request returns the first job; with another, IdempotencyConflict."""
-        self.uploads.get(request.upload_id)  # NotFound naming upload_id
+        ``idempotency_key`` with the same request returns the first job; with another, IdempotencyConflict.
+        The job is the caller's tenant's: it trains on that tenant's upload, into an avatar id that is free or
+        the tenant's own (PermissionDenied otherwise; the worker checks the avatar again when it commits)."""
+        self.upload_for(request.upload_id, principal)  # NotFound naming upload_id; PermissionDenied
+        if self.owner_of_avatar is not None:
+            owner = self.owner_of_avatar(request.avatar_id)
+            if owner is not None:
+                principal.check_write(f"avatar {request.avatar_id!r}", owner.tenant)
+        if self.access is not None:
+            self.access.count_job(principal)
         before = datetime.now(UTC)
-        job = self.jobs.submit(request.model_dump(), idempotency_key=idempotency_key,
+        job = self.jobs.submit(request.model_dump(), tenant=principal.tenant, idempotency_key=idempotency_key,
                                max_attempts=self.settings.job_max_attempts)
         created = idempotency_key is None or job.created_at >= before
         if self.metrics is not None:
@@ -380,26 +397,6 @@ class Training:
             if job.spec.get("upload_id") == upload_id and self._remove_work(job_id):
                 removed.append(job_id)
         return removed
-
-    # --------------------------------------------------------------------------------------------- avatars
-    @staticmethod
-    async def delete_avatar(engine: Engine, avatar_id: str) -> None:
-        """Delete an avatar: its bundle and the store's verification record, then its cached copies in this
-        process (on the event loop, which owns the cache). NotFound when the store has none.
-
-        The files go first, so a session opened meanwhile finds the avatar gone rather than caching it again."""
-        path = engine.store.existing(check_id(avatar_id))
-
-        def remove() -> None:
-            path.with_name(path.name + VERIFIED_RECORD).unlink(missing_ok=True)
-            try:
-                path.unlink()
-            except FileNotFoundError:
-                raise NotFound(f"no avatar {avatar_id!r} in the bundle store", field="avatar_id") from None
-
-        await asyncio.to_thread(remove)
-        engine.cache.unload(avatar_id)  # sessions open on it keep their copy until they end
-        log.info("avatar %s deleted", avatar_id)
 
     # ------------------------------------------------------------------------------------------- retention
     def sweep(self, now: datetime | None = None) -> SweepReport:
@@ -597,9 +594,12 @@ _ERRORS: dict[int | str, dict[str, Any]] = {
 _IDEMPOTENCY = Annotated[str | None, Header(alias="Idempotency-Key", min_length=1, max_length=255,
                                             description="the same key and body return the same job (200)")]
 
+JobId = Annotated[str, PathParam(pattern=JOB_ID_PATTERN.pattern, description="a job's id (POST /v1/jobs)")]
+UploadId = Annotated[str, PathParam(pattern=UPLOAD_ID_PATTERN.pattern, description="an upload's id")]
+ArtefactName = Annotated[Literal[tuple(ARTEFACTS)], PathParam(description="which artefact")]  # type: ignore
+
 uploads = APIRouter(prefix="/v1/uploads", tags=["uploads"])
 jobs = APIRouter(prefix="/v1/jobs", tags=["jobs"])
-avatars = APIRouter(prefix="/v1/avatars", tags=["avatars"])
 
 
 @uploads.post(
@@ -614,7 +614,7 @@ avatars = APIRouter(prefix="/v1/avatars", tags=["avatars"])
     openapi_extra={"requestBody": {"required": True, "content": {"multipart/form-data": {"schema": {
         "type": "object", "required": ["file"],
         "properties": {"file": {"type": "string", "format": "binary"}}}}}}})
-async def create_upload(request: Request, response: Response) -> UploadOut:
+async def create_upload(request: Request, response: Response, principal: Caller("jobs")) -> UploadOut:
     training = _training(request)
     limit = training.settings.max_dataset_bytes
     declared = request.headers.get("content-length", "")
@@ -622,9 +622,13 @@ async def create_upload(request: Request, response: Response) -> UploadOut:
     try:
         if declared.isascii() and declared.isdigit() and int(declared) > limit + _MULTIPART_SLACK:
             raise UploadTooLarge(f"the upload is larger than {limit} bytes", field="file")
+        if training.access is not None:
+            training.access.count_upload(principal)
+            training.access.check_quota(principal, int(declared) if declared.isascii() and declared.isdigit() else 0)
         form = _FilePart(request)
         await form.start()
-        upload = await training.uploads.receive(form.chunks(), max_bytes=limit, filename=form.filename)
+        upload = await training.uploads.receive(form.chunks(), max_bytes=limit, filename=form.filename,
+                                                tenant=principal.tenant)
     except (UploadTooLarge, ArchiveError, InvalidDataset) as exc:
         if metrics is not None:
             kind = ("too_large" if isinstance(exc, UploadTooLarge) else
@@ -644,13 +648,14 @@ async def create_upload(request: Request, response: Response) -> UploadOut:
 
 
 @uploads.get("", response_model=UploadList, summary="Uploaded datasets, oldest first")
-def list_uploads(request: Request) -> UploadList:
-    return UploadList(uploads=[UploadOut.of(u) for u in _training(request).uploads.list()])
+def list_uploads(request: Request, principal: Caller("jobs")) -> UploadList:
+    return UploadList(uploads=[UploadOut.of(u) for u in _training(request).uploads.list()
+                               if principal.may_read(u.tenant)])
 
 
 @uploads.get("/{upload_id}", response_model=UploadOut, summary="One upload", responses=_ERRORS)
-def get_upload(upload_id: str, request: Request) -> UploadOut:
-    return UploadOut.of(_training(request).uploads.get(upload_id))
+def get_upload(upload_id: UploadId, request: Request, principal: Caller("jobs")) -> UploadOut:
+    return UploadOut.of(_training(request).upload_for(upload_id, principal))
 
 
 @uploads.delete("/{upload_id}", status_code=204, response_class=Response,
@@ -658,8 +663,11 @@ def get_upload(upload_id: str, request: Request) -> UploadOut:
                 description="Refused (409) while a queued or running job uses it: cancel or delete those first. "
                             "Finished jobs keep their rows; avatars trained from it stay.",
                 responses={**_ERRORS, 409: {"model": ErrorBody, "description": "a queued or running job uses it"}})
-def delete_upload(upload_id: str, request: Request) -> Response:
-    removed = _training(request).delete_upload(upload_id)
+def delete_upload(upload_id: UploadId, request: Request, principal: Caller("jobs")) -> Response:
+    training = _training(request)
+    training.upload_for(upload_id, principal)
+    removed = training.delete_upload(upload_id)
+    Access.audit(principal, "upload.delete", upload_id)
     log.info("upload %s deleted (and the work folders of jobs %s)", upload_id, removed)
     return Response(status_code=204)
 
@@ -671,32 +679,34 @@ def delete_upload(upload_id: str, request: Request) -> Response:
            responses={200: {"model": JobOut, "description": "the job an earlier request with this key created"},
                       409: {"model": ErrorBody, "description": "the key was used with a different body"},
                       **_ERRORS})
-def submit_job(body: JobRequest, request: Request, response: Response,
+def submit_job(body: JobRequest, request: Request, response: Response, principal: Caller("jobs"),
                idempotency_key: _IDEMPOTENCY = None) -> JobOut:
     training = _training(request)
-    job, created = training.submit(body, idempotency_key)
+    job, created = training.submit(body, idempotency_key, principal)
     response.status_code = 201 if created else 200
     response.headers["Location"] = f"/v1/jobs/{job.id}"
     if created:
         log.info("job %s submitted: %s", job.id, job.spec)
+        Access.audit(principal, "job.submit", job.id, avatar=body.avatar_id, upload=body.upload_id)
     return training.job_out(job)
 
 
 @jobs.get("", response_model=JobList, summary="Jobs, newest first, optionally of one state (keyset pages)",
           responses={422: _ERRORS[422]})
-def list_jobs(request: Request, state: JobState | None = None,
+def list_jobs(request: Request, principal: Caller("jobs"), state: JobState | None = None,
               limit: Annotated[int, Query(ge=1, le=MAX_PAGE)] = 50,
               cursor: Annotated[str | None, Query(max_length=512)] = None) -> JobList:
     training = _training(request)
-    page, next_cursor = training.jobs.list(state=state, limit=limit, cursor=cursor)
+    page, next_cursor = training.jobs.list(state=state, limit=limit, cursor=cursor,
+                                           tenant=None if principal.admin else principal.tenant)
     return JobList(jobs=[training.job_out(j) for j in page], next_cursor=next_cursor)
 
 
 @jobs.get("/{job_id}", response_model=JobOut, summary="One job: state, progress, error, result, links",
           responses=_ERRORS)
-def get_job(job_id: str, request: Request) -> JobOut:
+def get_job(job_id: JobId, request: Request, principal: Caller("jobs")) -> JobOut:
     training = _training(request)
-    return training.job_out(training.jobs.get(job_id))
+    return training.job_out(training.job_for(job_id, principal))
 
 
 @jobs.post("/{job_id}/cancel", status_code=202, response_model=JobOut, summary="Cancel a job",
@@ -704,14 +714,15 @@ def get_job(job_id: str, request: Request) -> JobOut:
                        "worker checkpoints and ends it cancelled: watch its state). A finished job is left as it is "
                        "(200).",
            responses={200: {"model": JobOut, "description": "the job had already finished"}, **_ERRORS})
-def cancel_job(job_id: str, request: Request, response: Response) -> JobOut:
+def cancel_job(job_id: JobId, request: Request, response: Response, principal: Caller("jobs")) -> JobOut:
     training = _training(request)
-    job = training.jobs.get(job_id)
+    job = training.job_for(job_id, principal)
     if job.finished:
         response.status_code = 200
     else:
         job = training.jobs.request_cancel(job_id)
         log.info("job %s: cancel requested (now %s)", job_id, job.state)
+        Access.audit(principal, "job.cancel", job_id)
     return training.job_out(job)
 
 
@@ -722,8 +733,10 @@ def cancel_job(job_id: str, request: Request, response: Response) -> JobOut:
                       "goes), log (log.jsonl). 404 with the reason while one is not written yet.",
           responses={200: {"content": {"application/json": {}, "image/png": {}, "application/x-ndjson": {}}},
                       404: _ERRORS[404]})
-def get_artefact(job_id: str, name: str, request: Request) -> FileResponse:
-    path, media_type = _training(request).artefact(job_id, name)
+def get_artefact(job_id: JobId, name: ArtefactName, request: Request, principal: Caller("jobs")) -> FileResponse:
+    training = _training(request)
+    training.job_for(job_id, principal)
+    path, media_type = training.artefact(job_id, name)
     return FileResponse(path, media_type=media_type, headers={"Cache-Control": "no-store"})
 
 
@@ -736,11 +749,12 @@ def get_artefact(job_id: str, name: str, request: Request) -> FileResponse:
           responses={200: {"content": {"text/event-stream": {}}}, 429: {"model": ErrorBody,
                                                                        "description": "too many streams open"},
                      **_ERRORS})
-def follow_job(job_id: str, request: Request, after: Annotated[int | None, Query(ge=0)] = None,
+def follow_job(job_id: JobId, request: Request, principal: Caller("jobs"),
+               after: Annotated[int | None, Query(ge=0)] = None,
                last_event_id: Annotated[str | None, Header(alias="Last-Event-ID", max_length=64)] = None,
                ) -> StreamingResponse:
     training = _training(request)
-    training.jobs.get(job_id)  # NotFound: the one JSON 404, not a stream
+    training.job_for(job_id, principal)  # NotFound: the one JSON 404, not a stream
     start = job_events.last_event_id(last_event_id, after)
     return job_events.event_stream(request.app, training, job_id, start)
 
@@ -748,19 +762,13 @@ def follow_job(job_id: str, request: Request, after: Annotated[int | None, Query
 @jobs.delete("/{job_id}", status_code=204, response_class=Response,
              summary="Delete a job: its row, events and work folder (a running one stops before its next iteration)",
              responses=_ERRORS)
-def delete_job(job_id: str, request: Request) -> Response:
-    _training(request).delete_job(job_id)
+def delete_job(job_id: JobId, request: Request, principal: Caller("jobs")) -> Response:
+    training = _training(request)
+    training.job_for(job_id, principal)
+    training.delete_job(job_id)
     log.info("job %s deleted", job_id)
+    Access.audit(principal, "job.delete", job_id)
     return Response(status_code=204)
 
 
-@avatars.delete("/{avatar_id}", status_code=204, response_class=Response,
-                summary="Delete an avatar: its bundle, the store's record of it, and cached copies",
-                description="Streams already open on it keep their copy until they end; new ones get NOT_FOUND.",
-                responses=_ERRORS)
-async def delete_avatar(avatar_id: str, request: Request) -> Response:
-    await Training.delete_avatar(request.app.state.engine, avatar_id)
-    return Response(status_code=204)
-
-
-ROUTERS = (uploads, jobs, avatars)
+ROUTERS = (uploads, jobs)

@@ -32,10 +32,12 @@ class Metrics:
         r = self.registry = CollectorRegistry()
         ProcessCollector(registry=r)  # process_resident_memory_bytes, CPU seconds, open fds
         self.frames = Counter("blendsplat_frames", "frames rendered and sent", ["codec"], registry=r)
-        self.bytes_out = Counter("blendsplat_bytes_out", "encoded frame bytes sent", ["codec"], registry=r)
+        self.frame_bytes = Counter("blendsplat_frame_bytes", "encoded frame bytes sent", ["codec"], registry=r)
         self.dropped = Counter("blendsplat_dropped_frames", "poses replaced by newer ones before rendering",
                                registry=r)
-        self.errors = Counter("blendsplat_errors", "requests rejected, by status code", ["code"], registry=r)
+        self.errors = Counter("blendsplat_errors", "errors answered, by status code and transport (grpc, websocket, "
+                              "http): failed opens and calls, in-stream errors, HTTP 4xx and 5xx",
+                              ["code", "transport"], registry=r)
         self.stage = Histogram("blendsplat_stage_seconds", "time per frame and stage", ["stage"], buckets=_BUCKETS,
                                registry=r)
         self.batch = Histogram("blendsplat_batch_frames", "frames rendered per native call",

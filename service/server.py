@@ -36,17 +36,21 @@ from render_core.facemodel.open_head import open_head
 from render_core.tools.synth import synth_avatar
 from render_core.train.initialize import demo_albedo, init_avatar
 
+from .auth import ADMIN_TENANT, Access
 from .engine import Engine
 from .errors import ServiceError
 from .grpc_server import GrpcServer
 from .http_app import create_app, stop_reading_bodies
 from .job_events import close_streams
+from .jobs import KeyStore
 from .jobs_api import RETENTION_INTERVAL_SECONDS, Training
 from .settings import Settings
+from .store import Owner
 from .webhooks import WebhookDispatcher, load_secret
 
 log = logging.getLogger(__name__)
 DEMO_ID = "demo"
+DEMO_OWNER = Owner(ADMIN_TENANT, public=True)  # every key may read and stream the demo; only admin keys change it
 
 
 def make_demo_avatar(settings: Settings, engine: Engine) -> str:
@@ -66,6 +70,7 @@ def make_demo_avatar(settings: Settings, engine: Engine) -> str:
         avatar = init_avatar(model, gaussians=n - n // 16, mouth=n // 16, opacity=0.95, albedo=demo_albedo(model))
     write_bundle(avatar, engine.store.path(DEMO_ID), precision="fp16")
     engine.store.adopt(DEMO_ID)  # verified once, here: later loads trust the store's record
+    engine.store.set_owner(DEMO_ID, DEMO_OWNER)
     return avatar.face_model
 
 
@@ -105,6 +110,11 @@ class Service:
     async def start(self) -> None:
         s, engine = self.settings, self.engine
         self.training = await asyncio.to_thread(Training.open, s, engine.metrics)
+        engine.access = Access(s, KeyStore(self.training.jobs.engine))
+        engine.access.usage = [engine.store.tenant_bytes, self.training.uploads.tenant_bytes]
+        await asyncio.to_thread(engine.access.bootstrap)
+        self.training.access = engine.access
+        self.training.owner_of_avatar = engine.store.owner_if_exists
         self.webhooks = WebhookDispatcher(s, self.training.jobs, await asyncio.to_thread(load_secret, s))
         self.webhooks.start()
         await engine.start()
@@ -116,13 +126,16 @@ class Service:
             face_model = await asyncio.to_thread(make_demo_avatar, s, engine)
             log.info("created the demo avatar %r (%d Gaussians, %s) in %.1f s", DEMO_ID, s.demo_gaussians,
                      face_model, time.perf_counter() - t0)
+        elif DEMO_ID in engine.store.ids() and not engine.store.sidecars(DEMO_ID)[1].exists():
+            engine.store.set_owner(DEMO_ID, DEMO_OWNER)  # a demo made before avatars had owners: public
         self.grpc = GrpcServer(engine, s.host, s.grpc_port)
         await self.grpc.start()
         self.app = create_app(engine, self.training)
         self.app.state.problems["bundle_store"] = engine.store.problem  # /readyz says why the store is not usable
         # timeout_graceful_shutdown: replaced by what is left of the drain time when stopping (stop)
         config = uvicorn.Config(self.app, host=s.host, port=s.http_port, log_level="warning",
-                                ws_max_size=s.max_message_bytes, lifespan="off", timeout_graceful_shutdown=5)
+                                ws_max_size=s.max_message_bytes, lifespan="off", timeout_graceful_shutdown=5,
+                                ssl_certfile=s.tls_cert_file, ssl_keyfile=s.tls_key_file)
         self.http = _Uvicorn(config)
         self._http_task = asyncio.create_task(self.http.serve())
         while not self.http.started:

@@ -9,7 +9,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field
+from pydantic import Field, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 
@@ -65,6 +65,26 @@ class Settings(BaseSettings):
     heartbeat_seconds: float = Field(5.0, gt=0, description="worker heartbeat and progress interval")
     job_max_attempts: int = Field(3, ge=1, le=100, description="attempts of a job before it fails")
 
+    # Access: API keys, tenants, TLS, browsers (service/auth.py).
+    auth: Literal["keys", "off"] = Field(
+        "keys", description="keys: every API route and RPC needs an API key (health, metrics and the API docs stay "
+                            "open); off: no authentication, for a trusted network only (a warning at start)")
+    admin_key: str | None = Field(
+        None, description="an admin API key to accept (e.g. from a Kubernetes Secret); its hash is recorded in the "
+                          "key table at start. With no key at all, serve and up create one in <data_dir>/admin.key")
+    tls_cert_file: Path | None = Field(None, description="PEM certificate chain: both servers speak TLS only")
+    tls_key_file: Path | None = Field(None, description="PEM private key of tls_cert_file")
+    allowed_origins: list[str] = Field(
+        [], description="browser origins (scheme://host[:port]) allowed for CORS and WebSocket; the server's own "
+                        "pages are always allowed")
+    key_max_sessions: int = Field(8, ge=1, description="concurrent streams per non-admin key (more: 429 / "
+                                                       "RESOURCE_EXHAUSTED)")
+    key_uploads_per_hour: int = Field(20, ge=1, description="uploads (datasets and bundles) per non-admin key per "
+                                                            "hour")
+    key_jobs_per_hour: int = Field(20, ge=1, description="training jobs submitted per non-admin key per hour")
+    tenant_storage_bytes: int = Field(20 << 30, ge=1 << 20, description="storage quota of a tenant (its bundles "
+                                                                        "and uploads)")
+
     # Job events and webhooks (service/job_events.py, service/webhooks.py).
     events_max_streams: int = Field(100, ge=1, description="concurrent job event streams (GET /v1/jobs/{id}/events) "
                                                            "per process; more get 429")
@@ -96,6 +116,16 @@ class Settings(BaseSettings):
                                 "connection closes (a client then reopens its stream)")
     grpc_max_connection_idle_seconds: float = Field(
         0.0, ge=0, description="a gRPC connection with no call this long is closed; 0: never")
+
+    @model_validator(mode="after")
+    def _tls_pair(self) -> Settings:
+        if (self.tls_cert_file is None) != (self.tls_key_file is None):
+            raise ValueError("tls_cert_file and tls_key_file go together: set both (TLS) or neither")
+        for name in ("tls_cert_file", "tls_key_file"):
+            path = getattr(self, name)
+            if path is not None and not path.is_file():
+                raise ValueError(f"{name}: {path} is not a readable file")
+        return self
 
     @property
     def bundle_dir(self) -> Path:

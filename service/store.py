@@ -19,12 +19,14 @@ atomic writers' temporary files left by a killed process are removed at start (:
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import os
 import re
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 from render_core.atomic import atomic_path, publish
@@ -37,11 +39,21 @@ ID_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
 SUFFIX = ".bundle"
 STAGED_PREFIX = ".upload-"  # <root>/.upload-XXXX.tmp: an upload being received or validated
 RECORD = ".verified"  # <id>.bundle.verified: what the store verified (never ends in SUFFIX, so never an id)
+OWNER = ".owner"  # <id>.bundle.owner: {"tenant": ..., "public": ...} (service/auth.py's ownership rules)
 _MAX_HEADER = 100 << 20  # as the bundle reader's limit: a longer header is not a bundle
 
 
+@dataclass(frozen=True)
+class Owner:
+    """Who owns an avatar: its tenant (None: no tenant, only admin keys may change it) and whether every key may
+    read and stream it (the demo avatar). A bundle without an owner file is ``Owner(None, False)``: admin only."""
+
+    tenant: str | None
+    public: bool = False
+
+
 def check_id(avatar_id: str, field: str = "avatar_id") -> str:
-    if not ID_PATTERN.match(avatar_id or "") or avatar_id.endswith(".tmp"):
+    if not ID_PATTERN.match(avatar_id or ""):
         raise InvalidArgument(f"{avatar_id!r} is not an avatar id (letters, digits, '.', '_', '-'; at most 128, "
                               "starting with a letter or digit)", field=field)
     return avatar_id
@@ -130,9 +142,9 @@ class BundleStore:
                 pass  # someone else finished or removed it
         return removed
 
-    def commit(self, staged: Path, avatar_id: str) -> dict:
-        """Validate a staged upload, move it into place as ``avatar_id`` and record it as verified; the staged file
-        is gone after."""
+    def commit(self, staged: Path, avatar_id: str, owner: Owner | None = None) -> dict:
+        """Validate a staged upload, move it into place as ``avatar_id`` and record it as verified (and its
+        ``owner``, when given); the staged file is gone after."""
         try:
             target = self.path(avatar_id)
             try:
@@ -142,6 +154,8 @@ class BundleStore:
             except BundleError as e:
                 raise InvalidArgument(f"not a valid avatar bundle: {e}", field="bundle") from None
             identity = _identity(staged)
+            if owner is not None:  # before the bundle: a new bundle is never visible without its owner
+                self.set_owner(avatar_id, owner)
             publish(staged, target)
             self._record(target, identity, manifest)
             return manifest
@@ -155,6 +169,37 @@ class BundleStore:
         manifest = validate_bundle(path)
         self._record(path, identity, manifest)
         return manifest
+
+    def owner(self, avatar_id: str) -> Owner:
+        """The avatar's owner (``Owner(None, False)`` when it has no owner file: admin keys only)."""
+        try:
+            data = json.loads(self.path(avatar_id).with_name(f"{avatar_id}{SUFFIX}{OWNER}").read_text("utf-8"))
+            tenant = data.get("tenant")
+            return Owner(tenant if isinstance(tenant, str) else None, data.get("public") is True)
+        except (OSError, ValueError, AttributeError):
+            return Owner(None, False)
+
+    def owner_if_exists(self, avatar_id: str) -> Owner | None:
+        """The owner of an avatar in the store, None when there is no such avatar."""
+        return self.owner(avatar_id) if self.path(avatar_id).is_file() else None
+
+    def set_owner(self, avatar_id: str, owner: Owner) -> None:
+        with atomic_path(self.path(avatar_id).with_name(f"{avatar_id}{SUFFIX}{OWNER}")) as tmp:
+            tmp.write_text(json.dumps({"tenant": owner.tenant, "public": owner.public}), encoding="utf-8")
+
+    def sidecars(self, avatar_id: str) -> list[Path]:
+        """The files kept beside a bundle (verification record, owner): removed with it."""
+        path = self.path(avatar_id)
+        return [path.with_name(path.name + RECORD), path.with_name(path.name + OWNER)]
+
+    def tenant_bytes(self, tenant: str) -> int:
+        """Bytes of the bundles ``tenant`` owns (its storage quota counts them)."""
+        total = 0
+        for avatar_id in self.ids():
+            if self.owner(avatar_id).tenant == tenant:
+                with contextlib.suppress(OSError):
+                    total += self.path(avatar_id).stat().st_size
+        return total
 
     def verified(self, path: Path) -> bool:
         """Whether ``path`` is the file the store verified when it entered (same size and header as recorded):

@@ -88,6 +88,7 @@ class Upload:
     face_model: str
     filename: str | None  # the client's file name (display only: never used as a path)
     archive: str  # "tar", "tar.gz" or "zip"
+    tenant: str | None = None  # the owning tenant (service/auth.py; None: admin keys only)
 
     def to_json(self) -> dict:
         """The JSON object of ``upload.json`` (``created_at`` as ISO 8601 UTC)."""
@@ -101,7 +102,8 @@ class Upload:
         return cls(id=str(data["id"]), created_at=created, size=int(data["size"]), sha256=str(data["sha256"]),
                    frames=int(data["frames"]), width=int(data["width"]), height=int(data["height"]),
                    face_model=str(data["face_model"]), filename=data.get("filename"),
-                   archive=str(data.get("archive", "")))
+                   archive=str(data.get("archive", "")),
+                   tenant=data["tenant"] if isinstance(data.get("tenant"), str) else None)
 
 
 def check_upload_id(upload_id: str, field: str = "upload_id") -> str:
@@ -125,7 +127,8 @@ class UploadStore:
         self.root.mkdir(parents=True, exist_ok=True)
 
     # ------------------------------------------------------------------------------------------------- receiving
-    async def receive(self, chunks: AsyncIterator[bytes], *, max_bytes: int, filename: str | None = None) -> Upload:
+    async def receive(self, chunks: AsyncIterator[bytes], *, max_bytes: int, filename: str | None = None,
+                      tenant: str | None = None) -> Upload:
         """Receive one archive from ``chunks``, check, extract, validate and publish it; return its record.
 
         Raises :class:`UploadTooLarge` once more than ``max_bytes`` arrived (the rest is not read),
@@ -139,7 +142,8 @@ class UploadStore:
         state = {"published": None}
         try:
             size, sha256 = await self._spool(chunks, incoming, max_bytes)
-            return await asyncio.to_thread(self._ingest, incoming, token, size, sha256, filename, cancelled, state)
+            return await asyncio.to_thread(self._ingest, incoming, token, size, sha256, filename, cancelled, state,
+                                           tenant)
         except asyncio.CancelledError:
             with self._publish_lock:  # the worker thread either published already or never will
                 cancelled.set()
@@ -176,7 +180,7 @@ class UploadStore:
         return size, digest.hexdigest()
 
     def _ingest(self, archive: Path, token: str, size: int, sha256: str, filename: str | None,
-                cancelled: threading.Event, state: dict) -> Upload:
+                cancelled: threading.Event, state: dict, tenant: str | None = None) -> Upload:
         """(Worker thread.) Extract, validate and publish; on any failure or cancellation remove the staging
         folder."""
         staging = self.root / f".staging-{token}"
@@ -196,7 +200,7 @@ class UploadStore:
             upload = Upload(id=upload_id, created_at=datetime.now(UTC).replace(microsecond=0), size=size,
                             sha256=sha256, frames=int(manifest["frames"]), width=int(manifest["width"]),
                             height=int(manifest["height"]), face_model=str(manifest["face_model"]),
-                            filename=_display_name(filename), archive=kind)
+                            filename=_display_name(filename), archive=kind, tenant=tenant)
             _write_record(staging / RECORD, upload)
             os.chmod(staging, 0o755)
             target = self.root / upload_id
@@ -224,6 +228,10 @@ class UploadStore:
         """The dataset folder of a published upload (what training reads); NotFound if there is none."""
         self.get(upload_id)
         return self.root / upload_id / DATASET
+
+    def tenant_bytes(self, tenant: str) -> int:
+        """Bytes of the archives ``tenant`` uploaded that are still kept (its storage quota counts them)."""
+        return sum(u.size for u in self.list() if u.tenant == tenant)
 
     def list(self) -> list[Upload]:
         """Every published upload, oldest first."""

@@ -100,11 +100,12 @@ from render_core.atomic import publish
 from render_core.train.presets import PRESETS, get_preset
 from render_core.train.trainer import Outcome, Progress, Trainer, last_checkpoint, raster_step
 
+from .auth import ADMIN_TENANT, PermissionDenied
 from .errors import InvalidArgument, NotFound
 from .jobs import EventKind, Job, JobState, JobStore
 from .jobs.models import JobRecord
 from .settings import Settings
-from .store import BundleStore, check_id
+from .store import BundleStore, Owner, check_id
 from .uploads import UploadStore, check_upload_id
 
 __all__ = ["JobSpec", "Worker", "WorkerMetrics", "add_arguments", "default_worker_id", "main"]
@@ -573,7 +574,7 @@ class Worker:
         attempt.refresh()
         if attempt.lost.is_set() or attempt.cancel.is_set():
             return self._stop_early(job, attempt, trainer.iteration)
-        manifest = self._commit(workdir / BUNDLE, spec.avatar_id)
+        manifest = self._commit(workdir / BUNDLE, spec.avatar_id, job.tenant)
         ev = summary.get("eval")
         evaluation = None if not ev else {k: ev[k] for k in ("psnr", "ssim", "psnr_head") if ev.get(k) is not None}
         result = {"avatar_id": spec.avatar_id, "digest": manifest["digest"], "evaluation": evaluation,
@@ -627,9 +628,15 @@ class Worker:
             tmp.unlink(missing_ok=True)
         self._event(job, EventKind.PREVIEW, {"iteration": iteration, "path": PREVIEW})
 
-    def _commit(self, bundle: Path, avatar_id: str) -> dict:
+    def _commit(self, bundle: Path, avatar_id: str, tenant: str | None) -> dict:
         """A copy of the trained bundle into the bundle store under ``avatar_id`` (validated, published atomically,
-        recorded as verified); the manifest."""
+        recorded as verified, owned by the job's tenant); the manifest. PermissionDenied when the id is taken by
+        another tenant's avatar meanwhile (checked at submission too)."""
+        owner = Owner(tenant or ADMIN_TENANT)
+        existing = self.bundles.owner_if_exists(avatar_id)
+        if existing is not None and tenant is not None and existing.tenant != tenant:
+            raise PermissionDenied(f"avatar {avatar_id!r} belongs to another tenant; not replaced",
+                                   field="avatar_id")
         fd, staged = self.bundles.staging()
         try:
             with os.fdopen(fd, "wb") as out, open(bundle, "rb") as src:
@@ -637,7 +644,7 @@ class Worker:
         except BaseException:
             staged.unlink(missing_ok=True)
             raise
-        manifest = self.bundles.commit(staged, avatar_id)
+        manifest = self.bundles.commit(staged, avatar_id, owner)
         log.info("avatar %r committed to the bundle store (%s)", avatar_id, manifest.get("digest"))
         return manifest
 

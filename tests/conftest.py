@@ -44,9 +44,13 @@ def _deterministic():
 
 
 class LiveServer:
-    """A real service process's servers (gRPC + HTTP on loopback) running on an event loop in a thread."""
+    """A real service process's servers (gRPC + HTTP on loopback) running on an event loop in a thread.
+
+    The transport tests run it with ``auth="off"`` (what they check is the same either way); tests/test_auth.py
+    runs it with keys (``auth="keys"``): then ``api_key`` is the admin key it created and ``headers`` carry it."""
 
     def __init__(self, data_dir, **overrides):
+        overrides.setdefault("auth", "off")
         import asyncio
         import threading
 
@@ -66,6 +70,9 @@ class LiveServer:
         self.ws_url = f"ws://127.0.0.1:{self.service.http_port}/v1/stream"
         self.grpc_target = f"127.0.0.1:{self.service.grpc_port}"
         self.avatar_id = "demo"
+        key_file = settings.data_dir / "admin.key"
+        self.api_key = key_file.read_text().strip() if key_file.is_file() else None
+        self.headers = {"Authorization": f"Bearer {self.api_key}"} if self.api_key else {}
 
     def call(self, coro, timeout: float = 60):
         """Run a coroutine on the server's loop and wait for its result."""

@@ -115,3 +115,26 @@ def test_demo_page_streams_frames_and_follows_sliders(live_server, driver, tmp_p
     severe = [e for e in driver.get_log("browser") if e["level"] == "SEVERE"]
     assert not severe, severe
     print(f"demo page: first frame {t_first:.2f} s after load, new pose shown {t_update:.3f} s after the change")
+
+
+def test_demo_page_asks_for_a_key_once_and_streams_with_it(tmp_path, driver):
+    """With keys on (the default), the page asks for a key when the server answers 401, keeps it for the browser
+    session and streams over a WebSocket whose key is a subprotocol (never in the URL)."""
+    from conftest import LiveServer
+
+    server = LiveServer(tmp_path / "data", auth="keys")
+    try:
+        driver.get(f"{server.http_url}/demo")
+        WebDriverWait(driver, WAIT_S).until(lambda d: d.switch_to.alert)
+        alert = driver.switch_to.alert
+        assert "API key" in alert.text
+        alert.send_keys(server.api_key)
+        alert.accept()
+        _wait(driver, "the first frame with the key",
+              lambda d: d.execute_script(FRAMES_RECEIVED) >= 1 and d.execute_script(VIEW_STATE)[1])
+        assert driver.execute_script("return sessionStorage.getItem('blendsplat.apiKey')") == server.api_key
+        driver.refresh()  # kept for the session: no second question
+        _wait(driver, "the first frame after a reload",
+              lambda d: d.execute_script(FRAMES_RECEIVED) >= 1 and d.execute_script(VIEW_STATE)[1])
+    finally:
+        server.stop()

@@ -75,6 +75,9 @@ class Serve:
                 r = self.http.get("/readyz", timeout=2)
                 if r.status_code == 200 or (not wait_ready and "warm_up" in r.json().get("reasons", {})
                                             and "not rendered yet" not in r.json()["reasons"]["warm_up"]):
+                    self.key = (data / "admin.key").read_text().strip()  # created before the warm-up
+                    self.http.headers["Authorization"] = f"Bearer {self.key}"
+                    self.auth = f"Authorization: Bearer {self.key}\r\n".encode()  # for raw requests
                     return
             except httpx.TransportError:
                 pass
@@ -159,7 +162,8 @@ def test_avatars_without_blendshapes_or_mouth_upload_over_an_id_and_render(serve
 def test_a_declared_512_mib_render_body_is_refused_with_413_before_it_is_read(server):
     rss = server.rss()
     t0 = time.monotonic()
-    s = _raw(server.http_port, b"POST /v1/render HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n"
+    s = _raw(server.http_port, b"POST /v1/render HTTP/1.1\r\nHost: x\r\n" + server.auth
+             + b"Content-Type: application/json\r\n"
              + f"Content-Length: {512 << 20}\r\n\r\n".encode(), b"{" * 4096)
     with s:
         answer = _read_all(s)  # the server answers and closes: it never waits for the other 512 MiB
@@ -254,7 +258,7 @@ def test_an_unexpected_exception_is_a_typed_500_with_a_logged_error_id(live_serv
 def test_a_stalled_upload_times_out_with_408_and_leaves_no_temp_file(server):
     store = server.data / "bundles"
     t0 = time.monotonic()
-    s = _raw(server.http_port, b"PUT /v1/avatars/stalled HTTP/1.1\r\nHost: x\r\n"
+    s = _raw(server.http_port, b"PUT /v1/avatars/stalled HTTP/1.1\r\nHost: x\r\n" + server.auth + b""
              b"Content-Type: application/octet-stream\r\nContent-Length: 1000000\r\n\r\n", b"\x00" * 5000)
     with s:
         time.sleep(0.3)
@@ -393,7 +397,7 @@ def _huge_sparse_bundle(path: Path, gaussians: int) -> None:
 def test_an_upload_in_flight_at_sigterm_gets_503_and_the_drain_keeps_its_time(server):
     """Last test of ``server``: it stops it."""
     store = server.data / "bundles"
-    s = _raw(server.http_port, b"PUT /v1/avatars/inflight HTTP/1.1\r\nHost: x\r\n"
+    s = _raw(server.http_port, b"PUT /v1/avatars/inflight HTTP/1.1\r\nHost: x\r\n" + server.auth + b""
              b"Content-Type: application/octet-stream\r\nContent-Length: 8000000\r\n\r\n", b"\x00" * 65536)
     with s:
         time.sleep(0.3)
@@ -432,7 +436,7 @@ def test_restart_with_odd_bundles_and_no_demo_comes_up_and_a_killed_servers_temp
             r = b.http.post("/v1/render", json={"avatarId": avatar_id, "width": 32, "height": 32})
             assert r.status_code == 200 and r.content, r.text
         assert b.http.post("/v1/avatars/a-big/load").status_code == 429
-        s = _raw(b.http_port, b"PUT /v1/avatars/killed HTTP/1.1\r\nHost: x\r\n"
+        s = _raw(b.http_port, b"PUT /v1/avatars/killed HTTP/1.1\r\nHost: x\r\n" + b.auth + b""
                  b"Content-Length: 1000000\r\n\r\n", b"\x00" * 5000)
         time.sleep(0.3)
         b.proc.kill()

@@ -64,7 +64,8 @@ class ServerProcess:
             time.sleep(0.1)
         self.grpc_target = f"127.0.0.1:{match.group(1)}"
         self.url = f"http://127.0.0.1:{match.group(2)}"
-        self.http = httpx.Client(base_url=self.url, timeout=60)
+        self.key = (data_dir / "admin.key").read_text().strip()  # secure by default: the admin key it made
+        self.http = httpx.Client(base_url=self.url, timeout=60, headers={"Authorization": f"Bearer {self.key}"})
 
     def output(self) -> str:
         return self.log.read_text(errors="replace")
@@ -238,6 +239,7 @@ def test_a_client_that_goes_away_mid_upload_leaves_nothing(server, archives):
     host, port = server.url.removeprefix("http://").split(":")
     with socket.create_connection((host, int(port))) as sock:
         sock.sendall(f"POST /v1/uploads HTTP/1.1\r\nHost: {host}\r\nContent-Length: 900000\r\n"
+                     f"Authorization: Bearer {server.key}\r\n"
                      f"Content-Type: multipart/form-data; boundary={boundary}\r\n\r\n".encode()
                      + head + archives["tar.gz"][:500])
         time.sleep(0.5)  # the server is receiving the file part
@@ -431,7 +433,8 @@ def test_delete_of_an_avatar_removes_its_files_and_cached_copy(server, tmp_path)
     assert "gone" not in {a["id"] for a in server.http.get("/v1/avatars").json()["avatars"]}
     with grpc.insecure_channel(server.grpc_target) as channel:
         with pytest.raises(grpc.RpcError) as caught:
-            pb_grpc.RenderServiceStub(channel).Render(pb.RenderRequest(avatar_id="gone", width=16, height=16))
+            pb_grpc.RenderServiceStub(channel).Render(pb.RenderRequest(avatar_id="gone", width=16, height=16),
+                                                      metadata=(("authorization", f"Bearer {server.key}"),))
     assert caught.value.code() == grpc.StatusCode.NOT_FOUND  # not served from a cached copy
     assert server.http.delete("/v1/avatars/gone").status_code == 404
     error(server.http.delete("/v1/avatars/bad%20id"), 422, "INVALID_ARGUMENT", "avatar_id")
@@ -592,7 +595,7 @@ def _up_end_to_end(tmp_path: Path, video_archive: bytes, jobs_url: str | None) -
             stub = pb_grpc.RenderServiceStub(channel)
             requests = iter([pb.StreamRequest(open=pb.SessionConfig(avatar_id="trained", width=48, height=48)),
                              pb.StreamRequest(frame=pb.FrameParams(index=1))])
-            replies = stub.RenderStream(requests)
+            replies = stub.RenderStream(requests, metadata=(("authorization", f"Bearer {up.key}"),))
             assert next(replies).WhichOneof("msg") == "header"
             frame = next(replies)
             assert frame.WhichOneof("msg") == "frame" and frame.frame.index == 1 and frame.frame.data

@@ -63,10 +63,11 @@ def frame_params(index: int, coefficients, joints) -> pb.FrameParams:
 class GrpcStream:
     """A RenderStream driven step by step from the test."""
 
-    def __init__(self, stub, **config):
+    def __init__(self, stub, api_key: str | None = None, **config):
         self._requests: queue.Queue = queue.Queue()
         self._requests.put(pb.StreamRequest(open=pb.SessionConfig(**config)))
-        self._responses = stub.RenderStream(iter(self._requests.get, None))
+        metadata = (("authorization", f"Bearer {api_key}"),) if api_key else None
+        self._responses = stub.RenderStream(iter(self._requests.get, None), metadata=metadata)
 
     def send(self, **message) -> None:
         self._requests.put(pb.StreamRequest(**message))
@@ -83,8 +84,9 @@ class GrpcStream:
 class WsStream:
     """The same over the WebSocket (binary protobuf, or protobuf JSON with ``json_mode``)."""
 
-    def __init__(self, url: str, json_mode: bool = False, **config):
-        self._connection = connect(url, max_size=64 << 20, open_timeout=30)
+    def __init__(self, url: str, json_mode: bool = False, api_key: str | None = None, **config):
+        protocols = ["blendsplat.v1", f"bearer.{api_key}"] if api_key else None
+        self._connection = connect(url, max_size=64 << 20, open_timeout=30, subprotocols=protocols)
         self.ws, self.json_mode = self._connection.__enter__(), json_mode
         self.send(open=pb.SessionConfig(**config))
 
@@ -586,7 +588,7 @@ def test_metrics_counters_move(live_server, stub):
     stream.close()
     after = http.get("/metrics").text
     assert "# TYPE blendsplat_frames_total counter" in after
-    for name, labels in (("blendsplat_frames_total", 'codec="jpeg"'), ("blendsplat_bytes_out_total", 'codec="jpeg"'),
+    for name, labels in (("blendsplat_frames_total", 'codec="jpeg"'), ("blendsplat_frame_bytes_total", 'codec="jpeg"'),
                          ("blendsplat_sessions_total", 'transport="grpc"'),
                          ("blendsplat_errors_total", 'code="INVALID_ARGUMENT"'),
                          ("blendsplat_avatar_cache_hits_total", ""),
@@ -708,8 +710,10 @@ def test_serve_command_starts_ready_and_exits_cleanly_on_sigterm(tmp_path):
         else:
             pytest.fail("the service did not become ready")
         assert (tmp_path / "bundles" / "demo.bundle").is_file()
+        key = (tmp_path / "admin.key").read_text().strip()  # secure by default: an admin key was created
+        assert (tmp_path / "admin.key").stat().st_mode & 0o777 == 0o600
         with grpc.insecure_channel(f"127.0.0.1:{ports[0]}") as channel:
-            stream = GrpcStream(pb_grpc.RenderServiceStub(channel), avatar_id="demo", width=SIZE)
+            stream = GrpcStream(pb_grpc.RenderServiceStub(channel), api_key=key, avatar_id="demo", width=SIZE)
             header = stream.next().header
             assert header.gaussians == 2000 and "jawOpen" in header.expression_names  # the open head's
             proc.send_signal(signal.SIGTERM)

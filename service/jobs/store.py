@@ -328,14 +328,16 @@ class JobStore:
             return Job.of(record)
 
     def list(self, state: JobState | str | None = None, limit: int = 50,
-             cursor: str | None = None) -> tuple[list[Job], str | None]:
-        """Jobs newest first, optionally of one state: a page of at most ``limit`` (1 to 500) and the cursor of the
-        next page (None on the last). Keyset pagination: a page is stable while jobs are added."""
+             cursor: str | None = None, *, tenant: str | None = None) -> tuple[list[Job], str | None]:
+        """Jobs newest first, optionally of one state and one tenant: a page of at most ``limit`` (1 to 500) and the
+        cursor of the next page (None on the last). Keyset pagination: a page is stable while jobs are added."""
         if isinstance(limit, bool) or not isinstance(limit, int) or not 1 <= limit <= MAX_LIST:
             raise InvalidArgument(f"1 to {MAX_LIST}, got {limit!r}", field="limit")
         query = select(JobRecord).order_by(JobRecord.created_at.desc(), JobRecord.id.desc()).limit(limit + 1)
         if state is not None:
             query = query.where(JobRecord.state == _state(state).value)
+        if tenant is not None:
+            query = query.where(JobRecord.tenant == tenant)
         if cursor:
             created, job_id = _decode_cursor(cursor)
             query = query.where(or_(JobRecord.created_at < created,

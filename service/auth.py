@@ -1,0 +1,290 @@
+"""Who is calling, and what they may do: API keys, tenants, scopes, per-key limits and the audit log.
+
+One :class:`Access` per process, held by the :class:`~service.engine.Engine` (both transports reach it there):
+
+- **Keys** (:mod:`service.jobs.keys`: ``bsk_<id>_<secret>``, hashed in the job database) carry a tenant and
+  scopes: ``render`` (read and stream avatars), ``avatars:write`` (upload, replace, unload, delete),
+  ``jobs`` (datasets and training jobs), ``admin`` (everything, every tenant, keys). HTTP and gRPC read
+  ``authorization: Bearer <key>``; the WebSocket reads it from a subprotocol ``bearer.<key>`` offered beside
+  ``blendsplat.v1`` (browsers cannot set headers on a WebSocket; a URL would end up in logs).
+- **Tenants**: avatar ids are global, but every avatar, upload and job has an owning tenant. A key reads what its
+  tenant owns plus public avatars (the demo) and changes only what its tenant owns; admin keys see everything.
+  Someone else's resource is refused with PERMISSION_DENIED (HTTP 403) naming the resource.
+- **Open routes**: health (``/healthz``, ``/readyz``, gRPC health), ``/metrics``, the API description
+  (``/openapi.json``, ``/docs``) and the static pages (which ask for a key in the browser) need no key.
+- **Secure by default**: with ``auth=keys`` (the default) and no key in the database, :meth:`Access.bootstrap`
+  creates an admin key in ``<data_dir>/admin.key`` (mode 0600) and logs where; ``admin_key`` (e.g. from a
+  Kubernetes Secret) is registered instead. ``auth=off`` accepts every call as admin, with a warning at start.
+- **Limits per key** (admin keys are exempt): concurrent streams, uploads and jobs per hour, each RESOURCE_EXHAUSTED
+  (HTTP 429) with the seconds to wait (``Retry-After``). Counted per process: with N replicas a key may reach N
+  times the stream limit, and the hourly windows restart with a process.
+- **Audit**: one line on the ``blendsplat.audit`` logger for every avatar write, unload and delete, key change and
+  job submission: the action, its target, the key and tenant.
+
+A verified key is cached for :data:`CACHE_SECONDS` per process: a key revoked through another replica stops
+working there within that time (at once on the replica that revoked it).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import logging
+import math
+import os
+import threading
+import time
+from collections import defaultdict, deque
+from collections.abc import Callable
+from pathlib import Path
+
+from blendsplat.v1 import render_pb2 as pb
+
+from .errors import ResourceExhausted, ServiceError
+from .jobs.keys import ApiKey, KeyStore, parse_token
+from .settings import Settings
+
+log = logging.getLogger(__name__)
+audit_log = logging.getLogger("blendsplat.audit")
+CACHE_SECONDS = 5.0
+ADMIN_KEY_FILE = "admin.key"
+ADMIN_TENANT = "admin"
+WS_PROTOCOL = "blendsplat.v1"  # the WebSocket subprotocol the server answers with
+WS_KEY_PREFIX = "bearer."  # the subprotocol that carries the key: bearer.<key>
+HOUR = 3600.0
+
+
+class Unauthenticated(ServiceError):
+    """No key, or one that is not valid (unknown, revoked, malformed): HTTP 401, gRPC UNAUTHENTICATED."""
+
+    code = pb.UNAUTHENTICATED
+
+
+class PermissionDenied(ServiceError):
+    """A valid key without the scope, or another tenant's resource: HTTP 403, gRPC PERMISSION_DENIED."""
+
+    code = pb.PERMISSION_DENIED
+
+
+class RateLimited(ResourceExhausted):
+    """A per-key limit: HTTP 429 with ``Retry-After``, gRPC RESOURCE_EXHAUSTED."""
+
+    def __init__(self, message: str, *, retry_after: float, field: str | None = None):
+        super().__init__(message, field=field)
+        self.retry_after = max(1, math.ceil(retry_after))
+
+
+@dataclasses.dataclass(frozen=True)
+class Principal:
+    """The caller: its key id (None: auth is off or an internal call), tenant and scopes."""
+
+    key_id: str | None
+    tenant: str | None
+    scopes: frozenset[str]
+
+    @property
+    def admin(self) -> bool:
+        return "admin" in self.scopes
+
+    @property
+    def name(self) -> str:
+        return f"key {self.key_id} (tenant {self.tenant})" if self.key_id else "an unauthenticated caller (auth off)"
+
+    def require(self, scope: str) -> Principal:
+        if not (self.admin or scope in self.scopes):
+            raise PermissionDenied(f"{self.name} lacks the scope {scope!r} (it has "
+                                   f"{', '.join(sorted(self.scopes)) or 'none'})", field="authorization")
+        return self
+
+    def may_read(self, tenant: str | None, public: bool = False) -> bool:
+        return self.admin or public or (tenant is not None and tenant == self.tenant)
+
+    def may_write(self, tenant: str | None) -> bool:
+        return self.admin or (tenant is not None and tenant == self.tenant)
+
+    def check_read(self, what: str, tenant: str | None, public: bool = False) -> None:
+        if not self.may_read(tenant, public):
+            raise PermissionDenied(f"{what} belongs to another tenant", field="authorization")
+
+    def check_write(self, what: str, tenant: str | None) -> None:
+        if not self.may_write(tenant):
+            raise PermissionDenied(f"{what} belongs to another tenant"
+                                   + (" (public: only an admin key may change it)" if tenant is None else ""),
+                                   field="authorization")
+
+    @property
+    def owner(self) -> str | None:
+        """The tenant that owns what this caller creates."""
+        return self.tenant
+
+
+TRUSTED = Principal(None, None, frozenset({"admin"}))  # auth off, and the process's own calls (warm-up, demo)
+
+
+def bearer(value: str | None) -> str | None:
+    """The key of an ``Authorization: Bearer <key>`` value (None when absent or another scheme)."""
+    if not value:
+        return None
+    scheme, _, token = value.strip().partition(" ")
+    return token.strip() or None if scheme.lower() == "bearer" else None
+
+
+def ws_key(protocols: list[str]) -> str | None:
+    """The key a WebSocket client offered as the subprotocol ``bearer.<key>``."""
+    return next((p[len(WS_KEY_PREFIX):] for p in protocols if p.startswith(WS_KEY_PREFIX)), None)
+
+
+class _Window:
+    """Events in the last hour, per key (a sliding window)."""
+
+    def __init__(self, limit: int, what: str):
+        self.limit, self.what = limit, what
+        self._events: dict[str, deque[float]] = defaultdict(deque)
+
+    def take(self, key_id: str, now: float) -> None:
+        events = self._events[key_id]
+        while events and events[0] <= now - HOUR:
+            events.popleft()
+        if len(events) >= self.limit:
+            raise RateLimited(f"this key may make {self.limit} {self.what} per hour; try again later",
+                              retry_after=events[0] + HOUR - now, field="authorization")
+        events.append(now)
+
+
+class Access:
+    """Authentication, ownership rules, per-key limits and audit for one process (see the module docstring)."""
+
+    def __init__(self, settings: Settings, keys: KeyStore | None):
+        self.settings = settings
+        self.enabled = settings.auth == "keys"
+        self.keys = keys
+        if self.enabled and keys is None:
+            raise ValueError("auth=keys needs the job database (its api_keys table)")
+        self._cache: dict[str, tuple[Principal, float]] = {}
+        self._lock = threading.Lock()
+        self._sessions: dict[str, int] = defaultdict(int)
+        self._uploads = _Window(settings.key_uploads_per_hour, "uploads")
+        self._jobs = _Window(settings.key_jobs_per_hour, "job submissions")
+        self.usage: list[Callable[[str], int]] = []  # bytes a tenant stores, per store (check_quota sums them)
+
+    # ---- start-up ----
+    def bootstrap(self) -> Path | None:
+        """Secure by default: register ``admin_key`` if set; else, with no active key at all, create an admin key
+        in ``<data_dir>/admin.key`` (mode 0600; reused when the file is there). The file written, else None."""
+        if not self.enabled:
+            log.warning("authentication is OFF (auth=off): anyone who reaches these ports can read, change and "
+                        "delete every avatar and job. Use this on a trusted network only.")
+            return None
+        assert self.keys is not None
+        if self.settings.admin_key:
+            key, _ = self.keys.create(ADMIN_TENANT, ["admin"], "admin key (setting)", secret=self.settings.admin_key)
+            log.info("admin key %s from the admin_key setting is registered", key.id)
+            return None
+        path = self.settings.data_dir / ADMIN_KEY_FILE
+        if self.keys.any_active():
+            return None
+        existing = path.read_text(encoding="ascii").strip() if path.is_file() else None
+        if existing and parse_token(existing):
+            key, _ = self.keys.create(ADMIN_TENANT, ["admin"], "admin key (admin.key)", secret=existing)
+            log.info("admin key %s from %s is registered", key.id, path)
+            return path
+        key, token = self.keys.create(ADMIN_TENANT, ["admin"], "admin key (created at first start)")
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+        with os.fdopen(fd, "w", encoding="ascii") as f:
+            f.write(token + "\n")
+        os.replace(tmp, path)
+        log.warning("no API key was configured: created admin key %s in %s (mode 0600). Clients send it as "
+                    "'Authorization: Bearer <key>'; make scoped keys with `blendsplat keys create`.", key.id, path)
+        return path
+
+    # ---- who is calling ----
+    def authenticate(self, token: str | None) -> Principal:
+        """The caller of a request that presented ``token`` (None: no key). Unauthenticated when one is needed and
+        missing or not valid. Blocking (a database read on a cache miss)."""
+        if not self.enabled:
+            return TRUSTED
+        if not token:
+            raise Unauthenticated("an API key is required (Authorization: Bearer <key>)", field="authorization")
+        digest = hashlib.sha256(token.encode("utf-8", "replace")).hexdigest()
+        now = time.monotonic()
+        with self._lock:
+            hit = self._cache.get(digest)
+        if hit is not None and hit[1] > now:
+            return hit[0]
+        assert self.keys is not None
+        key = self.keys.verify(token)
+        if key is None:
+            raise Unauthenticated("the API key is not valid (unknown, revoked or malformed)", field="authorization")
+        principal = _principal(key)
+        with self._lock:
+            if len(self._cache) > 10_000:
+                self._cache.clear()
+            self._cache[digest] = (principal, now + CACHE_SECONDS)
+        return principal
+
+    def forget(self, key_id: str) -> None:
+        """Drop a key from the cache at once (it was revoked here)."""
+        with self._lock:
+            self._cache = {d: hit for d, hit in self._cache.items() if hit[0].key_id != key_id}
+
+    # ---- limits ----
+    def take_stream(self, principal: Principal) -> Callable[[], None]:
+        """Take one of the key's concurrent streams (RateLimited when it holds its limit); call the function
+        returned, once, when the stream ends. Admin keys and trusted calls have no limit."""
+        key = principal.key_id
+        if key is None or principal.admin:
+            return _nothing
+        limit = self.settings.key_max_sessions
+        with self._lock:
+            if self._sessions[key] >= limit:
+                raise RateLimited(f"this key may hold {limit} streams at once on this replica; end one first",
+                                  retry_after=1, field="authorization")
+            self._sessions[key] += 1
+        released = False
+
+        def release() -> None:
+            nonlocal released
+            with self._lock:
+                if not released:
+                    released = True
+                    self._sessions[key] -= 1
+        return release
+
+    def check_quota(self, principal: Principal, incoming: int) -> None:
+        """ResourceExhausted when the caller's tenant would store more than ``tenant_storage_bytes`` with
+        ``incoming`` more bytes (its bundles and datasets; admin keys are exempt)."""
+        if principal.key_id is None or principal.admin or principal.tenant is None:
+            return
+        used = sum(source(principal.tenant) for source in self.usage)
+        quota = self.settings.tenant_storage_bytes
+        if used + incoming > quota:
+            raise ResourceExhausted(f"tenant {principal.tenant!r} stores {used} bytes; with {incoming} more it would "
+                                    f"pass its quota of {quota} (delete avatars or uploads first)",
+                                    field="authorization")
+
+    def count_upload(self, principal: Principal) -> None:
+        if principal.key_id is not None and not principal.admin:
+            with self._lock:
+                self._uploads.take(principal.key_id, time.monotonic())
+
+    def count_job(self, principal: Principal) -> None:
+        if principal.key_id is not None and not principal.admin:
+            with self._lock:
+                self._jobs.take(principal.key_id, time.monotonic())
+
+    # ---- audit ----
+    @staticmethod
+    def audit(principal: Principal, action: str, target: str, **details) -> None:
+        extra = "".join(f" {k}={v}" for k, v in details.items())
+        audit_log.info("%s %s by key=%s tenant=%s%s", action, target, principal.key_id or "-",
+                       principal.tenant or "-", extra)
+
+
+def _nothing() -> None:
+    pass
+
+
+def _principal(key: ApiKey) -> Principal:
+    return Principal(key.id, key.tenant, frozenset(key.scopes))

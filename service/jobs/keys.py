@@ -1,0 +1,175 @@
+"""API keys: the ``api_keys`` table of the job database and :class:`KeyStore`.
+
+A key is ``bsk_<id>_<secret>``: ``id`` (10 hex characters) names it in lists, logs and audit lines; ``secret``
+(32 random bytes, URL-safe base64) is shown once, when the key is created, and stored only as its SHA-256. A
+keyed hash is not needed: the secret is random, so its hash cannot be searched. Each key has one tenant and a set
+of scopes (:data:`SCOPES`); a revoked key keeps its row (its id stays in the audit trail) and never verifies again.
+
+The job database is shared by every replica and worker (PostgreSQL in a cluster), so a key created or revoked
+through one replica holds on all of them (each caches a verified key for :data:`CACHE_SECONDS`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import hmac
+import re
+import secrets
+from collections.abc import Iterable
+from datetime import UTC, datetime
+
+from sqlalchemy import Engine, Index, String, select
+from sqlalchemy.orm import Mapped, mapped_column, sessionmaker
+
+from ..errors import InvalidArgument, NotFound
+from .models import Base
+
+PREFIX = "bsk"
+SCOPES = ("render", "avatars:write", "jobs", "admin")
+SCOPE_HELP = {
+    "render": "list and describe avatars, stream and render frames, load into the cache",
+    "avatars:write": "upload, replace, unload and delete avatars",
+    "jobs": "upload datasets, submit, watch, cancel and delete training jobs",
+    "admin": "everything, every tenant's resources, and keys",
+}
+TENANT_PATTERN = re.compile(r"^[a-z0-9][a-z0-9._-]{0,62}$")
+_TOKEN = re.compile(r"^bsk_([0-9a-f]{10})_([A-Za-z0-9_-]{43})$")
+
+
+class KeyRecord(Base):
+    """One API key (a row of ``api_keys``)."""
+
+    __tablename__ = "api_keys"
+
+    id: Mapped[str] = mapped_column(String(16), primary_key=True)
+    secret_sha256: Mapped[str] = mapped_column(String(64))
+    tenant: Mapped[str] = mapped_column(String(64))
+    scopes: Mapped[str] = mapped_column(String(255))  # space-separated
+    name: Mapped[str] = mapped_column(String(255), default="")
+    created_at: Mapped[datetime]
+    revoked_at: Mapped[datetime | None]
+
+    __table_args__ = (Index("ix_api_keys_tenant", "tenant"),)
+
+
+@dataclasses.dataclass(frozen=True)
+class ApiKey:
+    """A key as listed (never its secret)."""
+
+    id: str
+    tenant: str
+    scopes: tuple[str, ...]
+    name: str
+    created_at: datetime
+    revoked_at: datetime | None
+
+    @property
+    def active(self) -> bool:
+        return self.revoked_at is None
+
+    @classmethod
+    def of(cls, record: KeyRecord) -> ApiKey:
+        return cls(record.id, record.tenant, tuple(record.scopes.split()), record.name, record.created_at,
+                   record.revoked_at)
+
+    def as_json(self) -> dict:
+        return {"id": self.id, "tenant": self.tenant, "scopes": list(self.scopes), "name": self.name,
+                "created_at": self.created_at.isoformat(), "active": self.active,
+                "revoked_at": self.revoked_at.isoformat() if self.revoked_at else None}
+
+
+def _digest(secret: str) -> str:
+    return hashlib.sha256(secret.encode("ascii")).hexdigest()
+
+
+def parse_token(token: str) -> tuple[str, str] | None:
+    """``(id, secret)`` of a well-formed key, else None."""
+    match = _TOKEN.match(token or "")
+    return (match[1], match[2]) if match else None
+
+
+def check_scopes(scopes: Iterable[str]) -> tuple[str, ...]:
+    chosen = tuple(dict.fromkeys(scopes))
+    unknown = [s for s in chosen if s not in SCOPES]
+    if unknown or not chosen:
+        raise InvalidArgument(f"scopes must be some of {', '.join(SCOPES)} (got {', '.join(unknown) or 'none'})",
+                              field="scopes")
+    return chosen
+
+
+def check_tenant(tenant: str) -> str:
+    if not TENANT_PATTERN.match(tenant or ""):
+        raise InvalidArgument(f"{tenant!r} is not a tenant name (lower-case letters, digits, '.', '_', '-'; at "
+                              "most 63, starting with a letter or digit)", field="tenant")
+    return tenant
+
+
+class KeyStore:
+    """The ``api_keys`` table over a job database engine (migrated to head by :class:`~service.jobs.JobStore`)."""
+
+    def __init__(self, engine: Engine):
+        self.engine = engine
+        self._sessions = sessionmaker(engine, expire_on_commit=False)
+        self._writes = sessionmaker(engine.execution_options(sqlite_begin="IMMEDIATE"), expire_on_commit=False)
+
+    def create(self, tenant: str, scopes: Iterable[str], name: str = "", *, secret: str | None = None
+               ) -> tuple[ApiKey, str]:
+        """A new key: the record and the whole key (``bsk_<id>_<secret>``, shown once). ``secret``: register a
+        key made elsewhere (``parse_token`` must accept it), e.g. the admin key from a Kubernetes Secret."""
+        tenant, chosen = check_tenant(tenant), check_scopes(scopes)
+        if len(name) > 255:
+            raise InvalidArgument("a key name is at most 255 characters", field="name")
+        if secret is None:
+            key_id, secret_part = secrets.token_hex(5), secrets.token_urlsafe(32)
+        else:
+            parsed = parse_token(secret)
+            if parsed is None:
+                raise InvalidArgument("not an API key (bsk_<10 hex>_<43 URL-safe base64 characters>); make one "
+                                      "with `blendsplat keys create`", field="key")
+            key_id, secret_part = parsed
+        record = KeyRecord(id=key_id, secret_sha256=_digest(secret_part), tenant=tenant, scopes=" ".join(chosen),
+                           name=name, created_at=datetime.now(UTC), revoked_at=None)
+        with self._writes.begin() as session:
+            existing = session.get(KeyRecord, key_id)
+            if existing is not None:
+                if secret is not None and hmac.compare_digest(existing.secret_sha256, record.secret_sha256):
+                    return ApiKey.of(existing), f"{PREFIX}_{key_id}_{secret_part}"  # already registered
+                raise InvalidArgument(f"a key with id {key_id} exists already", field="key")
+            session.add(record)
+        return ApiKey.of(record), f"{PREFIX}_{key_id}_{secret_part}"
+
+    def verify(self, token: str) -> ApiKey | None:
+        """The active key ``token`` is, or None (malformed, unknown, wrong secret or revoked)."""
+        parsed = parse_token(token)
+        if parsed is None:
+            return None
+        key_id, secret_part = parsed
+        with self._sessions() as session:
+            record = session.get(KeyRecord, key_id)
+            if record is None or not hmac.compare_digest(record.secret_sha256, _digest(secret_part)):
+                return None
+            return ApiKey.of(record) if record.revoked_at is None else None
+
+    def list(self, *, tenant: str | None = None, include_revoked: bool = False) -> list[ApiKey]:
+        query = select(KeyRecord).order_by(KeyRecord.created_at, KeyRecord.id)
+        if tenant is not None:
+            query = query.where(KeyRecord.tenant == tenant)
+        if not include_revoked:
+            query = query.where(KeyRecord.revoked_at.is_(None))
+        with self._sessions() as session:
+            return [ApiKey.of(r) for r in session.scalars(query)]
+
+    def revoke(self, key_id: str) -> ApiKey:
+        with self._writes.begin() as session:
+            record = session.get(KeyRecord, key_id)
+            if record is None:
+                raise NotFound(f"no API key {key_id!r}", field="key_id")
+            if record.revoked_at is None:
+                record.revoked_at = datetime.now(UTC)
+            return ApiKey.of(record)
+
+    def any_active(self) -> bool:
+        with self._sessions() as session:
+            return session.scalars(select(KeyRecord.id).where(KeyRecord.revoked_at.is_(None)).limit(1)).first() \
+                is not None
