@@ -26,12 +26,15 @@ from typing import Annotated, Any
 from fastapi import APIRouter, FastAPI, Request, WebSocket, WebSocketDisconnect
 from fastapi import Path as PathParam
 from fastapi.exceptions import RequestValidationError
+from fastapi.openapi.docs import get_swagger_ui_html
 from fastapi.responses import FileResponse, JSONResponse, Response
+from fastapi.staticfiles import StaticFiles
 from google.protobuf import json_format
 from google.protobuf.message import DecodeError
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import compile_path
+from swagger_ui_bundle import swagger_ui_path
 
 from blendsplat.v1 import render_pb2 as pb
 from render_core.errors import BlendsplatError
@@ -465,6 +468,15 @@ async def metrics(request: Request) -> Response:
     return Response(body, media_type=CONTENT_TYPE_LATEST)
 
 
+@ops.get("/docs", include_in_schema=False)
+async def api_docs() -> Response:
+    """Swagger UI from this server's own copy (swagger-ui-bundle): the docs work without internet."""
+    return get_swagger_ui_html(openapi_url="/openapi.json", title="Blendsplat API",
+                               swagger_js_url="/static/swagger/swagger-ui-bundle.js",
+                               swagger_css_url="/static/swagger/swagger-ui.css",
+                               swagger_favicon_url="/static/swagger/favicon-32x32.png")
+
+
 @ops.get("/demo", summary="A page with sliders that drives an avatar over the WebSocket stream",
          response_class=FileResponse)
 async def demo() -> FileResponse:
@@ -479,7 +491,7 @@ async def jobs_page() -> FileResponse:
 
 def create_app(engine: Engine, training: Training | None = None) -> FastAPI:
     """The app over ``engine``; with ``training``, also the training jobs' routes (:mod:`service.jobs_api`)."""
-    app = FastAPI(title="Blendsplat render service", version="1",
+    app = FastAPI(title="Blendsplat render service", version="1", docs_url=None, redoc_url=None,
                   description="Gaussian blendshape head avatars, animated and rendered live. The gRPC service "
                               "blendsplat.v1.RenderService carries the same messages. Training jobs: upload a "
                               "tracked video (/v1/uploads), submit a job (/v1/jobs), a worker trains it.")
@@ -489,6 +501,7 @@ def create_app(engine: Engine, training: Training | None = None) -> FastAPI:
     app.state.closing = asyncio.Event()  # set by stop_reading_bodies (drain)
     for router in (avatars, render, adapters, ops):
         app.include_router(router)
+    app.mount("/static/swagger", StaticFiles(directory=swagger_ui_path), name="swagger-ui")
     if training is not None:
         for router in TRAINING_ROUTERS:
             app.include_router(router)

@@ -57,9 +57,9 @@ class LiveServer:
         from service.server import Service
         from service.settings import Settings
 
-        settings = Settings(data_dir=data_dir, host="127.0.0.1", grpc_port=0, http_port=0, demo_avatar="synthetic",
-                            demo_gaussians=3000,
-                            demo_blendshapes=8, warmup_size=64, **overrides)
+        defaults = {"demo_avatar": "synthetic", "demo_gaussians": 3000, "demo_blendshapes": 8, "warmup_size": 64}
+        settings = Settings(data_dir=data_dir, host="127.0.0.1", grpc_port=0, http_port=0,
+                            **{**defaults, **overrides})
         self.loop = asyncio.new_event_loop()
         self.thread = threading.Thread(target=self.loop.run_forever, name="live-server", daemon=True)
         self.thread.start()

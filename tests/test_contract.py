@@ -1,0 +1,152 @@
+"""The API contract (issue 17) on the real servers: the OpenAPI document is exact enough to generate a client from,
+errors have one shape, and the streams end the way the proto says."""
+
+from __future__ import annotations
+
+import grpc
+import httpx
+import pytest
+from conftest import LiveServer
+from grpc_reflection.v1alpha import reflection_pb2
+from websockets.sync.client import connect
+
+from blendsplat.v1 import render_pb2 as pb
+from blendsplat.v1 import render_pb2_grpc as pb_grpc
+from service.http_auth import OPEN_PATHS
+
+
+@pytest.fixture(scope="module")
+def keyed(tmp_path_factory):
+    """A server with keys (the default) and the training routes, as `serve` runs it."""
+    server = LiveServer(tmp_path_factory.mktemp("contract"), auth="keys")
+    yield server
+    server.stop()
+
+
+@pytest.fixture(scope="module")
+def spec(keyed) -> dict:
+    r = httpx.get(keyed.http_url + "/openapi.json", timeout=30)
+    assert r.status_code == 200
+    return r.json()
+
+
+def operations(spec):
+    for path, methods in spec["paths"].items():
+        for method, operation in methods.items():
+            yield path, method, operation
+
+
+def test_every_operation_documents_its_error_statuses_with_the_one_error_model(spec):
+    assert "HTTPValidationError" not in str(spec)  # FastAPI's {"detail": [...]} is never what answers
+    error_ref = "#/components/schemas/ErrorBody"
+    assert {"code", "message", "field"} <= set(spec["components"]["schemas"]["ErrorDetail"]["properties"])
+    checked = 0
+    for path, method, operation in operations(spec):
+        responses = operation["responses"]
+        expected = {"500", "503"} | ({"401", "403", "404", "422", "429"} if path not in OPEN_PATHS else set())
+        assert expected <= set(responses), (method, path, sorted(responses))
+        for status in expected:
+            assert responses[status]["content"]["application/json"]["schema"]["$ref"] == error_ref
+        if path not in OPEN_PATHS:
+            assert operation.get("security"), (method, path)  # the bearer scheme is on it
+            checked += 1
+    assert checked >= 15
+    assert spec["components"]["securitySchemes"]["apiKey"]["scheme"].lower() == "bearer"
+
+
+def test_path_parameters_have_patterns_and_bodies_have_schemas(spec):
+    for path, method, operation in operations(spec):
+        for parameter in operation.get("parameters", []):
+            if parameter["in"] == "path":
+                schema = parameter["schema"]
+                assert "pattern" in schema or "enum" in schema or "anyOf" in schema or path.startswith(
+                    "/v1/adapters"), (method, path, parameter)
+        if method in ("put", "post") and path in ("/v1/render", "/v1/jobs", "/v1/uploads", "/v1/avatars/{avatar_id}"):
+            assert operation["requestBody"]["content"], (method, path)
+    render = spec["paths"]["/v1/render"]["post"]["requestBody"]["content"]["application/json"]["schema"]
+    assert render["required"] == ["avatarId"] and render["properties"]["width"]["maximum"] == 2048
+
+
+@pytest.mark.parametrize("demo", ["synthetic", "open-head"])
+def test_the_render_example_works_against_both_demo_avatars(tmp_path, spec, demo):
+    example = spec["paths"]["/v1/render"]["post"]["requestBody"]["content"]["application/json"]["schema"][
+        "examples"][0]
+    server = LiveServer(tmp_path / "data", demo_avatar=demo, demo_gaussians=2000)
+    try:
+        r = httpx.post(server.http_url + "/v1/render", json=example, timeout=60)
+        assert r.status_code == 200 and r.headers["content-type"] == "image/png", r.text
+    finally:
+        server.stop()
+
+
+def test_errors_have_one_shape_including_405_with_the_whole_allow_header(keyed):
+    with httpx.Client(base_url=keyed.http_url, headers=keyed.headers, timeout=30) as http:
+        r = http.post("/v1/avatars/demo")
+        assert r.status_code == 405
+        assert set(r.headers["allow"].replace(" ", "").split(",")) >= {"GET", "PUT", "DELETE"}
+        assert r.json()["error"]["code"] == "INVALID_ARGUMENT" and "PUT" in r.json()["error"]["message"]
+        r = http.post("/v1/jobs", content=b"\xff{", headers={"Content-Type": "application/json"})
+        assert r.status_code == 422 and r.json()["error"]["field"] == "body"
+        r = http.get("/v1/avatars/no-such-avatar")
+        assert r.status_code == 404 and set(r.json()["error"]) == {"code", "message", "field"}
+        r = http.get("/v1/avatars/bad%20id")
+        assert r.status_code == 422 and r.json()["error"]["field"] == "avatar_id"
+
+
+def test_docs_are_served_without_a_cdn(keyed):
+    page = httpx.get(keyed.http_url + "/docs", timeout=30)
+    assert page.status_code == 200 and "cdn" not in page.text.lower() and "/static/swagger/" in page.text
+    for asset in ("swagger-ui-bundle.js", "swagger-ui.css"):
+        assert httpx.get(f"{keyed.http_url}/static/swagger/{asset}", timeout=30).status_code == 200
+
+
+def test_a_websocket_end_message_is_answered_by_the_final_status(keyed):
+    protocols = ["blendsplat.v1", f"bearer.{keyed.api_key}"]
+    with connect(keyed.ws_url, subprotocols=protocols, open_timeout=30) as ws:
+        ws.send(pb.StreamRequest(open=pb.SessionConfig(avatar_id="demo", width=32, height=32)).SerializeToString())
+        assert pb.StreamResponse.FromString(ws.recv(timeout=30)).HasField("header")
+        ws.send(pb.StreamRequest(frame=pb.FrameParams(index=1)).SerializeToString())
+        assert pb.StreamResponse.FromString(ws.recv(timeout=30)).frame.index == 1
+        ws.send(pb.StreamRequest(end=pb.End()).SerializeToString())
+        final = pb.StreamResponse.FromString(ws.recv(timeout=30))
+    assert final.HasField("status") and final.status.code == pb.OK and final.status.frames_sent == 1
+
+
+def test_grpc_reflection_is_served_as_v1_and_v1alpha(keyed):
+    with grpc.insecure_channel(keyed.grpc_target) as channel:
+        for name in ("grpc.reflection.v1.ServerReflection", "grpc.reflection.v1alpha.ServerReflection"):
+            call = channel.stream_stream(f"/{name}/ServerReflectionInfo",
+                                         request_serializer=reflection_pb2.ServerReflectionRequest.SerializeToString,
+                                         response_deserializer=reflection_pb2.ServerReflectionResponse.FromString)
+            replies = list(call(iter([reflection_pb2.ServerReflectionRequest(list_services="")]), timeout=30))
+            names = {s.name for s in replies[0].list_services_response.service}
+            assert "blendsplat.v1.RenderService" in names, (name, names)
+
+
+def _metric(http: httpx.Client, name: str, **labels) -> float:
+    wanted = ",".join(f'{k}="{v}"' for k, v in labels.items())
+    for line in http.get("/metrics").text.splitlines():
+        if line.startswith(f"{name}{{{wanted}}}" if labels else f"{name} "):
+            return float(line.rsplit(" ", 1)[1])
+    return 0.0
+
+
+def test_metrics_count_errors_by_code_and_transport_and_misses_only_for_loads(keyed):
+    with httpx.Client(base_url=keyed.http_url, headers=keyed.headers, timeout=30) as http:
+        http_404 = _metric(http, "blendsplat_errors_total", code="NOT_FOUND", transport="http")
+        grpc_404 = _metric(http, "blendsplat_errors_total", code="NOT_FOUND", transport="grpc")
+        ws_401 = _metric(http, "blendsplat_errors_total", code="UNAUTHENTICATED", transport="websocket")
+        misses = _metric(http, "blendsplat_avatar_cache_misses_total")
+        assert http.get("/v1/avatars/missing").status_code == 404
+        with grpc.insecure_channel(keyed.grpc_target) as channel, pytest.raises(grpc.RpcError):
+            opened = pb.StreamRequest(open=pb.SessionConfig(avatar_id="missing", width=16, height=16))
+            list(pb_grpc.RenderServiceStub(channel).RenderStream(
+                iter([opened]), metadata=(("authorization", f"Bearer {keyed.api_key}"),)))
+        with connect(keyed.ws_url, subprotocols=["blendsplat.v1"], open_timeout=30) as ws:  # no key
+            ws.send(pb.StreamRequest(open=pb.SessionConfig(avatar_id="demo")).SerializeToString())
+            assert pb.StreamResponse.FromString(ws.recv(timeout=30)).status.code == pb.UNAUTHENTICATED
+        assert _metric(http, "blendsplat_errors_total", code="NOT_FOUND", transport="http") == http_404 + 1
+        assert _metric(http, "blendsplat_errors_total", code="NOT_FOUND", transport="grpc") == grpc_404 + 1
+        assert _metric(http, "blendsplat_errors_total", code="UNAUTHENTICATED", transport="websocket") == ws_401 + 1
+        assert _metric(http, "blendsplat_avatar_cache_misses_total") == misses  # a missing avatar loads nothing
+        assert "blendsplat_frame_bytes_total" in http.get("/metrics").text
