@@ -43,7 +43,8 @@ def _pose(rng: np.random.Generator, k: int, joints: list[str], index: int) -> pb
 
 
 async def _run_stream(stub: pb_grpc.RenderServiceStub, avatar: str, size: int, codec: str, fps: float,
-                      seconds: float, warmup: float, seed: int, ack: bool = True) -> _Stream:
+                      seconds: float, warmup: float, seed: int, ack: bool = True,
+                      api_key: str | None = None) -> _Stream:
     result = _Stream()
     outbox: asyncio.Queue[pb.StreamRequest | None] = asyncio.Queue()
     sent_at: dict[int, float] = {}
@@ -75,7 +76,8 @@ async def _run_stream(stub: pb_grpc.RenderServiceStub, avatar: str, size: int, c
         avatar_id=avatar, width=size, height=size, codec=CODECS[codec], fps_hint=fps)))
     ticker = asyncio.create_task(tick())
     try:
-        async for reply in stub.RenderStream(requests()):
+        metadata = (("authorization", f"Bearer {api_key}"),) if api_key else None
+        async for reply in stub.RenderStream(requests(), metadata=metadata):
             kind = reply.WhichOneof("msg")
             now = time.perf_counter()
             if kind == "header":
@@ -129,14 +131,15 @@ def _server_rss(metrics_url: str | None) -> float | None:
 
 async def bench_stream(target: str, avatar: str, streams: int = 1, seconds: float = 10.0, fps: float = 30.0,
                        size: int = 512, codec: str = "jpeg", warmup: float = 1.0, seed: int = 0,
-                       ack: bool = True, metrics_url: str | None = None) -> dict:
+                       ack: bool = True, metrics_url: str | None = None, api_key: str | None = None) -> dict:
     """``ack=False``: readers that never acknowledge (flow control must keep the server's memory flat; with
     ``metrics_url`` the server's resident memory before and after is reported)."""
     rss_before = _server_rss(metrics_url)
     async with grpc.aio.insecure_channel(target, options=[("grpc.max_receive_message_length", 64 << 20)]) as ch:
         stub = pb_grpc.RenderServiceStub(ch)
         results = await asyncio.gather(*(
-            _run_stream(stub, avatar, size, codec, fps, seconds, warmup, seed + i, ack) for i in range(streams)))
+            _run_stream(stub, avatar, size, codec, fps, seconds, warmup, seed + i, ack, api_key)
+            for i in range(streams)))
         rss_during = _server_rss(metrics_url)
     latencies = [x for r in results for x in r.latencies]
     server = [x for r in results for x in r.server_ms]

@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -84,7 +85,8 @@ def cmd_bench_stream(args: argparse.Namespace) -> int:
 
     result = asyncio.run(bench_stream(args.target, args.avatar, streams=args.streams, seconds=args.seconds,
                                       fps=args.fps, size=args.size, codec=args.codec, warmup=args.warmup,
-                                      seed=args.seed, ack=not args.no_ack, metrics_url=args.metrics_url))
+                                      seed=args.seed, ack=not args.no_ack, metrics_url=args.metrics_url,
+                                      api_key=args.api_key))
     if args.json:
         print(json.dumps(result))
     else:
@@ -247,6 +249,8 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--metrics-url", default=None,
                    help="the server's /metrics URL: report its resident memory before and at the end")
     b.add_argument("--json", action="store_true", help="one JSON line")
+    b.add_argument("--api-key", default=os.environ.get("BLENDSPLAT_API_KEY"),
+                   help="API key with the render scope (default: the environment variable BLENDSPLAT_API_KEY)")
     b.set_defaults(fn=cmd_bench_stream)
 
     b = p.bench_commands.add_parser("load", help="cold and warm load of a bundle from a store to its first frame: "

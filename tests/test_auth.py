@@ -359,3 +359,17 @@ def test_tls_settings_come_in_pairs_of_readable_files(tmp_path):
         Settings(tls_cert_file=tmp_path / "x.pem")
     with pytest.raises(ValidationError, match="not a readable file"):
         Settings(tls_cert_file=tmp_path / "x.pem", tls_key_file=tmp_path / "y.pem")
+
+
+def test_bench_stream_takes_the_key_from_the_environment(server):
+    import os
+
+    command = [sys.executable, "-m", "service.cli", "bench", "stream", "--target", server.grpc_target, "--avatar",
+               "demo", "--seconds", "1", "--warmup", "0.2", "--size", "64", "--json"]
+    env = {**os.environ, "BLENDSPLAT_API_KEY": server.api_key}
+    result = subprocess.run(command, env=env, capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert json.loads(result.stdout)["frames"] > 0
+    env.pop("BLENDSPLAT_API_KEY")
+    refused = subprocess.run(command, env=env, capture_output=True, text=True, timeout=120)
+    assert refused.returncode != 0 and "UNAUTHENTICATED" in refused.stderr + refused.stdout
