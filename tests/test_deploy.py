@@ -271,6 +271,20 @@ def test_manifest_commands_are_real_cli_commands(overlay):
     assert seen == set(expected)
 
 
+def test_smoke_commands_and_variables_are_real():
+    """What deploy/smoke runs in its containers parses with the CLI, and its BLENDSPLAT_* variables are settings
+    (BLENDSPLAT_API_KEY and BLENDSPLAT_CLI are the client side's: the key stream_check.py sends, the checkout's CLI)."""
+    from service import cli
+
+    text = re.sub(r"\\\n\s*", " ", (DEPLOY / "smoke").read_text())
+    runs = re.findall(r' run -d [^\n]*?"\$IMAGE" ([^>|\n]*?)\s*(?:>|$)', text, re.M)
+    parsed = [parse_command([re.sub(r'^"\$\w+"$', "9100", a) for a in run.split()]).fn for run in runs]
+    assert parsed == [cli.cmd_serve, cli.cmd_worker], runs
+    fields = settings_fields()
+    for name in set(re.findall(r"\b(BLENDSPLAT_[A-Z0-9_]+)", text)) - {"BLENDSPLAT_API_KEY", "BLENDSPLAT_CLI"}:
+        assert name.removeprefix("BLENDSPLAT_").lower() in fields, f"{name} is not a setting"
+
+
 def http_routes() -> set[str]:
     from service.http_app import create_app
     from service.settings import Settings
@@ -558,6 +572,29 @@ def test_job_store_open_warns_on_a_network_filesystem(tmp_path, monkeypatch, cap
     with caplog.at_level(logging.WARNING, logger="service.jobs.netfs"):
         JobStore.open(f"sqlite:///{tmp_path / 'shared space' / 'jobs.db'}").close()
     assert "network filesystem (cifs)" in caplog.text
+
+
+def test_stream_check_streams_from_a_live_server(tmp_path, monkeypatch):
+    """deploy/stream_check.py (the smoke's gRPC client) against a real server, with its admin key when it made one."""
+    import asyncio
+
+    from conftest import LiveServer
+
+    spec = importlib.util.spec_from_file_location("stream_check", DEPLOY / "stream_check.py")
+    stream_check = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(stream_check)
+    server = LiveServer(tmp_path, auth="keys")
+    try:
+        key = getattr(server, "api_key", None)
+        if key:
+            monkeypatch.setenv("BLENDSPLAT_API_KEY", key)
+        else:
+            monkeypatch.delenv("BLENDSPLAT_API_KEY", raising=False)
+        result = asyncio.run(stream_check.check(server.grpc_target, "demo", 1.0, 10.0, 64))
+    finally:
+        server.stop()
+    assert result["frames"] > 0 and result["errors"] == 0, result
+    assert result["api_key"] == bool(key)
 
 
 # ------------------------------------------------------------------------------------ container smoke
