@@ -376,6 +376,8 @@ async def stream(ws: WebSocket) -> None:
 
 # ------------------------------------------------------------------------------------------------------ adapters
 adapters = APIRouter(prefix="/v1/adapters", tags=["adapters"])
+AdapterId = Annotated[str, PathParam(pattern=AVATAR_ID_PATTERN.pattern, max_length=128,
+                                     description="an adapter id (the same rule as avatar ids)")]
 _ADAPTER_UPLOAD = (16 << 20) + (2 << 20)  # the model's limit (service/adapters.py) plus the manifest and framing
 
 
@@ -387,7 +389,7 @@ async def list_adapters(request: Request, principal: Caller("render")) -> dict:
 
 
 @adapters.get("/{adapter_id}", summary="One adapter: its manifest (source and target names), owner, size, digest")
-async def get_adapter(adapter_id: str, request: Request, principal: Caller("render")) -> dict:
+async def get_adapter(adapter_id: AdapterId, request: Request, principal: Caller("render")) -> dict:
     info = _engine(request).adapters.info(adapter_id)
     principal.check_read(f"adapter {adapter_id!r}", info.get("tenant"), info.get("tenant") is None)
     return info
@@ -399,7 +401,7 @@ async def get_adapter(adapter_id: str, request: Request, principal: Caller("rend
                           "manifest=@m.json -F model=@a.onnx. Both are validated (size, opsets, operators, no "
                           "external data, shapes against the manifest, loads in onnxruntime) before anything is "
                           "stored; a refusal is 422 naming the reason's field.")
-async def put_adapter(adapter_id: str, request: Request, principal: Caller("avatars:write")) -> dict:
+async def put_adapter(adapter_id: AdapterId, request: Request, principal: Caller("avatars:write")) -> dict:
     _check_adapter_write(request, adapter_id, principal)
     body = await _bounded_body(request, _ADAPTER_UPLOAD)  # read once, bounded; the form parses these bytes
 
@@ -433,7 +435,7 @@ def _check_adapter_write(request: Request, adapter_id: str, principal) -> None:
 
 
 @adapters.delete("/{adapter_id}", summary="Delete an adapter (sessions using it keep their loaded copy)")
-async def delete_adapter(adapter_id: str, request: Request, principal: Caller("avatars:write")) -> dict:
+async def delete_adapter(adapter_id: AdapterId, request: Request, principal: Caller("avatars:write")) -> dict:
     _check_adapter_write(request, adapter_id, principal)
     Access.audit(principal, "adapter.delete", adapter_id)
     return _engine(request).adapters.delete(adapter_id)

@@ -73,6 +73,7 @@ from .auth import TRUSTED, Access, Principal
 from .errors import FailedPrecondition, InvalidArgument, NotFound
 from .http_auth import Caller
 from .jobs import Job, JobState, JobStore
+from .jobs.store import CURSOR_PATTERN
 from .openapi import ErrorBody
 from .settings import Settings
 from .store import ID_PATTERN as AVATAR_ID_PATTERN
@@ -695,7 +696,8 @@ def submit_job(body: JobRequest, request: Request, response: Response, principal
           responses={422: _ERRORS[422]})
 def list_jobs(request: Request, principal: Caller("jobs"), state: JobState | None = None,
               limit: Annotated[int, Query(ge=1, le=MAX_PAGE)] = 50,
-              cursor: Annotated[str | None, Query(max_length=512)] = None) -> JobList:
+              cursor: Annotated[str | None, Query(pattern=CURSOR_PATTERN.pattern, max_length=82,
+                                                  description="next_cursor of the previous page")] = None) -> JobList:
     training = _training(request)
     page, next_cursor = training.jobs.list(state=state, limit=limit, cursor=cursor,
                                            tenant=None if principal.admin else principal.tenant)

@@ -21,7 +21,7 @@ RECORD_SUFFIX = ".json"
 
 
 def check_adapter_id(adapter_id: str, field: str = "adapter") -> str:
-    if not isinstance(adapter_id, str) or not ID_PATTERN.match(adapter_id) or adapter_id.endswith(".tmp"):
+    if not isinstance(adapter_id, str) or not ID_PATTERN.match(adapter_id):
         raise AdapterError(f"{str(adapter_id)[:60]!r} is not an adapter id (letters, digits, '.', '_', '-'; at most "
                            "128, starting with a letter or digit)", field=field)
     return adapter_id

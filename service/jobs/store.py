@@ -29,12 +29,12 @@ The store is synchronous and thread-safe (one engine, pooled connections); async
 
 from __future__ import annotations
 
-import base64
 import hashlib
 import json
 import logging
 import math
 import numbers
+import re
 import secrets
 import threading
 import time
@@ -141,21 +141,21 @@ def _lease(worker_id: str, lease_seconds: float) -> timedelta:
     return timedelta(seconds=float(lease_seconds))
 
 
+# A page cursor is the keyset position of the last job listed: its creation time in microseconds since the epoch
+# and its id. Every string of this form is a position (a page that may be empty), so the API can state the pattern.
+CURSOR_PATTERN = re.compile(r"^([0-9]{1,16})~([A-Za-z0-9_-]{1,64})$")
+_EPOCH = datetime(1970, 1, 1, tzinfo=UTC)
+
+
 def _encode_cursor(record: JobRecord) -> str:
-    raw = json.dumps([record.created_at.isoformat(), record.id]).encode()
-    return base64.urlsafe_b64encode(raw).decode().rstrip("=")
+    return f"{(record.created_at - _EPOCH) // timedelta(microseconds=1)}~{record.id}"
 
 
 def _decode_cursor(cursor: str) -> tuple[datetime, str]:
-    try:
-        raw = base64.urlsafe_b64decode(cursor + "=" * (-len(cursor) % 4))
-        created, job_id = json.loads(raw)
-        when = datetime.fromisoformat(created)
-        if when.tzinfo is None or not isinstance(job_id, str):
-            raise ValueError
-        return when, job_id
-    except (ValueError, TypeError):
-        raise InvalidArgument("not a cursor this listing returned", field="cursor") from None
+    match = CURSOR_PATTERN.match(cursor)
+    if match is None:
+        raise InvalidArgument("not a cursor this listing returned (<microseconds>~<job id>)", field="cursor")
+    return _EPOCH + timedelta(microseconds=int(match[1])), match[2]
 
 
 class JobStore:
