@@ -470,6 +470,11 @@ async def metrics(request: Request) -> Response:
     return Response(body, media_type=CONTENT_TYPE_LATEST)
 
 
+@ops.get("/favicon.ico", include_in_schema=False)
+async def favicon() -> Response:
+    return Response(status_code=204)  # no icon; browsers stop asking without logging a 404
+
+
 @ops.get("/docs", include_in_schema=False)
 async def api_docs() -> Response:
     """Swagger UI from this server's own copy (swagger-ui-bundle): the docs work without internet."""

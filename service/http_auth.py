@@ -20,7 +20,7 @@ from .engine import Engine
 
 # Routes that need no key: probes, metrics, the API description and the static pages (they ask for a key).
 OPEN_PATHS = frozenset({"/healthz", "/readyz", "/metrics", "/openapi.json", "/docs", "/docs/oauth2-redirect",
-                        "/demo", "/jobs"})  # and the Swagger UI assets (/static/swagger, a mount)
+                        "/demo", "/jobs", "/favicon.ico"})  # and the Swagger UI assets (/static/swagger, a mount)
 
 _scheme = HTTPBearer(auto_error=False, scheme_name="apiKey",
                      description="An API key (`blendsplat keys create`, or the admin key in <data_dir>/admin.key), "

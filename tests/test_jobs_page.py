@@ -135,6 +135,12 @@ def test_upload_train_watch_cancel_and_open_a_trained_avatar(driver, tmp_path, t
     log = up.output
     try:
         t_up = time.perf_counter() - t0
+        # keys are on (the default): the server created its admin key at first start; the page keeps the key it
+        # is given for the browser session (sessionStorage, as the page's "Use" button stores it: the key test
+        # below clicks it), so it is put there first and the page never answers a 401
+        driver.get(f"{up.url}/healthz")
+        driver.execute_script("sessionStorage.setItem('blendsplat.apiKey', arguments[0])",
+                              (tmp_path / "data" / "admin.key").read_text().strip())
         driver.get(f"{up.url}/jobs")
         _wait(driver, "the empty job list", lambda d: "no jobs yet" in _text(d, "jobs"), log=log)
         assert driver.find_element(By.ID, "start").get_attribute("disabled") is not None  # nothing uploaded yet

@@ -78,7 +78,7 @@ def test_an_upload_is_published_with_its_record_and_no_archive(store, tmp_path, 
     assert {p.relative_to(folder).as_posix(): p.read_bytes() for p in folder.rglob("*") if p.is_file()} == dataset
     record = json.loads((store.root / upload.id / "upload.json").read_text())
     assert set(record) == {"id", "created_at", "size", "sha256", "frames", "width", "height", "face_model",
-                           "filename", "archive"}
+                           "filename", "archive", "tenant"}  # tenant: the owner (service/auth.py)
     assert record["id"] == upload.id and record["created_at"].endswith("Z")
     assert store.get(upload.id) == upload and store.list() == [upload]
 
