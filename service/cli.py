@@ -230,7 +230,7 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--update", type=Path, default=None, metavar="FILE",
                    help="rewrite the table between the settings-reference markers of FILE (e.g. README.md)")
     c.set_defaults(fn=cmd_settings)
-    from .jobs_client import add_commands as add_jobs_commands
+    from .jobs_cli import add_commands as add_jobs_commands
 
     add_jobs_commands(p.commands)  # `blendsplat jobs ...`: the training jobs' REST client
 

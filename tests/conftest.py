@@ -1,5 +1,7 @@
 import contextlib
 import secrets
+from collections.abc import Iterator
+from pathlib import Path
 
 import pytest
 import torch
@@ -92,6 +94,37 @@ def live_server(tmp_path_factory):
     server = LiveServer(tmp_path_factory.mktemp("live-server"))
     yield server
     server.stop()
+
+
+# ------------------------------------------------------------------------------------------- Chromium
+CHROMIUM = Path("/usr/bin/chromium")
+CHROMEDRIVER = Path("/usr/bin/chromedriver")
+
+
+@pytest.fixture
+def driver(tmp_path) -> Iterator:
+    """Headless Debian Chromium through ChromeDriver (the page tests); skipped, with the install command, without
+    them. Selenium is pointed at both binaries, so Selenium Manager never looks for a browser on the network."""
+    from selenium import webdriver
+    from selenium.webdriver.chrome.service import Service
+
+    missing = [str(p) for p in (CHROMIUM, CHROMEDRIVER) if not p.exists()]
+    if missing:
+        pytest.skip(f"{', '.join(missing)} missing: apt-get update && apt-get install -y chromium chromium-driver")
+    options = webdriver.ChromeOptions()
+    options.binary_location = str(CHROMIUM)
+    # No background networking: this machine has no internet, and Chromium's own lookups only slow it down.
+    # 1280 x 1100: the screenshots show the curves and the preview without scrolling
+    for arg in ("--headless=new", "--no-sandbox", "--disable-gpu", "--window-size=1280,1100", "--no-first-run",
+                "--disable-background-networking", "--disable-component-update", "--disable-sync", "--disable-quic",
+                f"--user-data-dir={tmp_path / 'chromium-profile'}"):
+        options.add_argument(arg)
+    options.set_capability("goog:loggingPrefs", {"browser": "ALL"})
+    drv = webdriver.Chrome(service=Service(executable_path=str(CHROMEDRIVER)), options=options)
+    try:
+        yield drv
+    finally:
+        drv.quit()
 
 
 # ------------------------------------------------------------------------------------------- PostgreSQL

@@ -25,7 +25,8 @@ import pytest
 
 from service import jobs_client
 from service.cli import main as blendsplat
-from service.jobs_client import ApiError, ConnectionFailed, Event, JobsClient, Watch
+from service.jobs_cli import Watch
+from service.jobs_client import ApiError, ConnectionFailed, Event, JobsClient
 
 ROOT = Path(__file__).resolve().parents[1]
 READY = re.compile(r"ready: gRPC on port (\d+), HTTP on port (\d+)")

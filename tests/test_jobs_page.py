@@ -33,14 +33,11 @@ from pathlib import Path
 import pytest
 from selenium import webdriver
 from selenium.common.exceptions import TimeoutException
-from selenium.webdriver.chrome.service import Service
 from selenium.webdriver.common.by import By
 from selenium.webdriver.support import expected_conditions
 from selenium.webdriver.support.ui import WebDriverWait
 from test_jobs_api import ServerProcess
 
-CHROMIUM = Path("/usr/bin/chromium")
-CHROMEDRIVER = Path("/usr/bin/chromedriver")
 PAGE = Path(__file__).resolve().parents[1] / "service" / "static" / "jobs.html"
 WAIT_S = 60
 SCREENSHOTS = {"training": Path("/tmp/jobs-page-training.png"), "finished": Path("/tmp/jobs-page-finished.png")}
@@ -48,27 +45,6 @@ SCREENSHOTS = {"training": Path("/tmp/jobs-page-training.png"), "finished": Path
 # yet, its probe of /v1/jobs/{id}/events (404) before it polls.
 EXPECTED_CONSOLE = (re.compile(r"/v1/uploads - Failed to load resource: .* 422"),
                     re.compile(r"/v1/jobs/[^ ]+/events - Failed to load resource: .* 404"))
-
-
-@pytest.fixture
-def driver(tmp_path) -> Iterator[webdriver.Chrome]:
-    missing = [str(p) for p in (CHROMIUM, CHROMEDRIVER) if not p.exists()]
-    if missing:
-        pytest.skip(f"{', '.join(missing)} missing: apt-get update && apt-get install -y chromium chromium-driver")
-    options = webdriver.ChromeOptions()
-    options.binary_location = str(CHROMIUM)
-    # No background networking: this machine has no internet, and Chromium's own lookups only slow it down.
-    # 1280 x 1100: the screenshots show the curves and the preview without scrolling
-    for arg in ("--headless=new", "--no-sandbox", "--disable-gpu", "--window-size=1280,1100", "--no-first-run",
-                "--disable-background-networking", "--disable-component-update", "--disable-sync", "--disable-quic",
-                f"--user-data-dir={tmp_path / 'chromium-profile'}"):
-        options.add_argument(arg)
-    options.set_capability("goog:loggingPrefs", {"browser": "ALL"})
-    drv = webdriver.Chrome(service=Service(executable_path=str(CHROMEDRIVER)), options=options)
-    try:
-        yield drv
-    finally:
-        drv.quit()
 
 
 def _text(drv: webdriver.Chrome, element_id: str) -> str:

@@ -590,7 +590,7 @@ def test_metrics_counters_move(live_server, stub):
     assert "# TYPE blendsplat_frames_total counter" in after
     for name, labels in (("blendsplat_frames_total", 'codec="jpeg"'), ("blendsplat_frame_bytes_total", 'codec="jpeg"'),
                          ("blendsplat_sessions_total", 'transport="grpc"'),
-                         ("blendsplat_errors_total", 'code="INVALID_ARGUMENT"'),
+                         ("blendsplat_errors_total", 'code="INVALID_ARGUMENT",transport="grpc"'),
                          ("blendsplat_avatar_cache_hits_total", ""),
                          ("blendsplat_stage_seconds_count", 'stage="raster"')):
         assert _metric(after, name, labels) > _metric(before, name, labels), name

@@ -1,0 +1,497 @@
+"""`blendsplat jobs submit | list | show | cancel | wait | delete`: the command-line side of
+:mod:`service.jobs_client` (progress bars, the printed summary, exit codes, argument parsing).
+
+Conventions (docs/architecture.md): results go to stdout (the job's JSON with ``--json``, else a short summary);
+progress bars (tqdm, only when stderr is a terminal), state changes and errors go to stderr. Exit codes: 0
+success (``submit --wait`` / ``wait``: the job succeeded), 1 the job failed or was cancelled, 2 a usage,
+connection, HTTP or timeout error, 130 waiting interrupted by Ctrl-C (the job goes on).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import os
+import sys
+import tempfile
+import uuid
+from collections.abc import Callable
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from .jobs_client import (
+    ARCHIVE_SUFFIXES,
+    DEFAULT_SERVER,
+    KEY_ENV,
+    SERVER_ENV,
+    STATES,
+    TERMINAL,
+    ClientError,
+    Event,
+    JobsClient,
+    WaitTimeout,
+    pack_dataset,
+)
+
+EXIT_OK, EXIT_JOB, EXIT_ERROR, EXIT_INTERRUPTED = 0, 1, 2, 130
+log = logging.getLogger(__name__)
+
+
+class Watch:
+    """What a command shows on stderr while it follows a job: one line per state change and, when stderr is a
+    terminal (or ``bars`` is set), a tqdm bar of iterations with the loss, PSNR and the server's ETA.
+
+    An event stream starts with the job's history: events recorded before the job as first read (its
+    ``updated_at``) are counted but not shown again; the first read already showed where the job is."""
+
+    def __init__(self, job_id: str, bars: bool | None = None, stream=None):
+        self.job_id, self.stream = job_id, stream or sys.stderr
+        self.bars = self.stream.isatty() if bars is None else bars
+        self.bar = None
+        self.state: str | None = None
+        self.postfix: dict[str, str] = {}  # the latest of each figure (a report may carry only some)
+        self.events = self.polls = 0
+        self.since: datetime | None = None
+
+    def _say(self, text: str) -> None:
+        if self.bar is not None:
+            self.bar.write(text, file=self.stream)
+        else:
+            print(text, file=self.stream, flush=True)
+
+    def _state(self, state: str | None, error: str | None = None) -> None:
+        if state and state != self.state:
+            self.state = state
+            self._say(f"job {self.job_id}: {state}" + (f" ({error})" if error else ""))
+
+    def _progress(self, p: dict[str, Any]) -> None:
+        total, done = p.get("total_iterations"), p.get("iteration")
+        if not self.bars or not isinstance(total, int) or total < 1 or not isinstance(done, int):
+            return
+        if self.bar is None:
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=total, initial=0, desc="train", unit="it", file=self.stream, dynamic_ncols=True,
+                            bar_format="{desc}: {percentage:3.0f}%|{bar}| {n_fmt}/{total_fmt} [{elapsed}{postfix}]")
+        if self.bar.total != total:
+            self.bar.total = total
+        postfix = self.postfix
+        if isinstance(p.get("loss"), int | float):
+            postfix["loss"] = f"{p['loss']:.4f}"
+        if isinstance(p.get("psnr"), int | float):
+            postfix["psnr"] = f"{p['psnr']:.2f}"
+        if isinstance(p.get("eta_seconds"), int | float):
+            postfix["eta"] = _duration(p["eta_seconds"])
+        elif done >= total:
+            postfix["eta"] = _duration(0)
+        if isinstance(p.get("gaussians"), int):
+            postfix["gaussians"] = str(p["gaussians"])
+        self.bar.set_postfix(postfix, refresh=False)
+        self.bar.update(max(0, min(done, total)) - self.bar.n)
+
+    def on_event(self, event: Event) -> None:
+        self.events += 1
+        recorded = _time(event.data.get("time"))
+        if recorded is not None and self.since is not None and recorded <= self.since:
+            return  # history the first read already summed up
+        if event.event == "progress":
+            self._progress(event.data)
+        elif event.event == "state":
+            self._state(event.data.get("state"), event.data.get("error"))
+        elif event.event == "log" and isinstance(event.data.get("message"), str):
+            self._say(f"job {self.job_id}: {event.data['message']}")
+
+    def on_job(self, job: dict[str, Any]) -> None:
+        self.polls += 1
+        if self.since is None:
+            self.since = _time(job.get("updated_at"))
+        if isinstance(job.get("progress"), dict):
+            self._progress(job["progress"])
+        self._state(job.get("state"))
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+            self.bar = None
+
+
+def _time(value: Any) -> datetime | None:
+    """An ISO 8601 time the server wrote, timezone-aware; None when it is not one."""
+    if not isinstance(value, str):
+        return None
+    try:
+        parsed = datetime.fromisoformat(value)
+    except ValueError:
+        return None
+    return parsed if parsed.tzinfo is not None else parsed.replace(tzinfo=UTC)
+
+
+def _duration(seconds: float) -> str:
+    s = max(0, round(seconds))
+    return f"{s // 3600}:{s // 60 % 60:02d}:{s % 60:02d}" if s >= 3600 else f"{s // 60:02d}:{s % 60:02d}"
+
+
+class UploadBar:
+    """Bytes sent of an upload: a tqdm bar on stderr when it is a terminal."""
+
+    def __init__(self, total: int, name: str, stream=None):
+        self.stream = stream or sys.stderr
+        self.bar = None
+        if self.stream.isatty():
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=total, desc=f"upload {name}", unit="B", unit_scale=True, unit_divisor=1024,
+                            file=self.stream, dynamic_ncols=True)
+
+    def __call__(self, n: int) -> None:
+        if self.bar is not None:
+            self.bar.update(n)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
+def _client(args: argparse.Namespace) -> JobsClient:
+    server = args.server or os.environ.get(SERVER_ENV) or DEFAULT_SERVER
+    key = args.api_key if args.api_key is not None else os.environ.get(KEY_ENV)
+    return JobsClient(server, key or None)
+
+
+def _print_json(obj: Any) -> None:
+    sys.stdout.write(json.dumps(obj, indent=2) + "\n")
+    sys.stdout.flush()
+
+
+def _summary(client: JobsClient, job: dict[str, Any]) -> str:
+    """A few lines about a job for people: id, state, avatar, progress, PSNR, error, links."""
+    spec = job.get("spec") or {}
+    result = job.get("result") or {}
+    progress = job.get("progress") or {}
+    links = job.get("links") or {}
+    lines = [f"job {job.get('id')}: {job.get('state')}"
+             + (" (cancel requested)" if job.get("cancel_requested") and job.get("state") not in TERMINAL else "")]
+    avatar = result.get("avatar_id") or spec.get("avatar_id")
+    if avatar:
+        lines.append(f"  avatar        {avatar}" + (f"  {client.url(links['avatar'])}" if links.get("avatar") else ""))
+    lines.append(f"  preset        {spec.get('preset', '?')}, {spec.get('iterations') or 'default'} iterations")
+    if progress.get("iteration") is not None:
+        text = f"  progress      {progress.get('iteration')}/{progress.get('total_iterations') or '?'}"
+        if isinstance(progress.get("loss"), int | float):
+            text += f", loss {progress['loss']:.4f}"
+        if isinstance(progress.get("psnr"), int | float):
+            text += f", PSNR {progress['psnr']:.2f} dB"
+        if isinstance(progress.get("eta_seconds"), int | float) and job.get("state") == "running":
+            text += f", ETA {_duration(progress['eta_seconds'])}"
+        lines.append(text)
+    evaluation = result.get("evaluation") or {}
+    if isinstance(evaluation.get("psnr"), int | float):
+        text = f"  held-out      PSNR {evaluation['psnr']:.2f} dB"
+        if isinstance(evaluation.get("ssim"), int | float):
+            text += f", SSIM {evaluation['ssim']:.4f}"
+        if isinstance(result.get("seconds"), int | float):
+            text += f" ({result['seconds']:.1f} s of training)"
+        lines.append(text)
+    if job.get("error"):
+        lines.append(f"  error         {job['error']}")
+    if links.get("self"):
+        lines.append(f"  job           {client.url(links['self'])}")
+    for name in ("report", "contact-sheet"):
+        if name in (links.get("artefacts") or {}):
+            lines.append(f"  {name:<13} {client.url(links['artefacts'][name])}")
+    return "\n".join(lines)
+
+
+def _show(client: JobsClient, job: dict[str, Any], as_json: bool) -> None:
+    if as_json:
+        _print_json(job)
+    else:
+        sys.stdout.write(_summary(client, job) + "\n")
+        sys.stdout.flush()
+
+
+def _resume_hint(args: argparse.Namespace, job_id: str) -> str:
+    extra = f" --server {args.server}" if args.server else ""
+    return f"blendsplat jobs wait {job_id}{extra}"
+
+
+def _ended(job: dict[str, Any], want: str = "succeeded") -> int:
+    """The exit code of a job that ended: 0 when it ended ``want``, else 1 (why on stderr: the job's error)."""
+    state = job.get("state")
+    if state == want:
+        return EXIT_OK
+    if want == "cancelled":
+        print(f"blendsplat: error: job {job.get('id')} ended {state} before the cancel took effect",
+              file=sys.stderr, flush=True)
+    else:
+        reason = job.get("error") or ("cancel requested" if state == "cancelled" else "no reason given")
+        print(f"blendsplat: error: job {job.get('id')} {state}: {reason}", file=sys.stderr, flush=True)
+    return EXIT_JOB
+
+
+def _wait(client: JobsClient, args: argparse.Namespace, job_id: str, want: str = "succeeded") -> int:
+    """Follow a job to its end, show it, and return the exit code (0: it ended ``want``)."""
+    watch = Watch(job_id)
+    try:
+        job = client.follow(job_id, on_event=watch.on_event, on_job=watch.on_job,
+                            timeout=getattr(args, "timeout", None))
+    except KeyboardInterrupt:
+        watch.close()
+        state = f" ({watch.state})" if watch.state else ""
+        print(f"\nstopped waiting; job {job_id} goes on{state}. Resume with: {_resume_hint(args, job_id)}",
+              file=sys.stderr, flush=True)
+        return EXIT_INTERRUPTED
+    except WaitTimeout as exc:
+        watch.close()
+        raise WaitTimeout(f"{exc}; it goes on ({watch.state or 'not finished'}). Resume with: "
+                          f"{_resume_hint(args, job_id)}") from None
+    finally:
+        watch.close()
+    _show(client, job, args.json)
+    return _ended(job, want)
+
+
+def cmd_submit(args: argparse.Namespace) -> int:
+    source: Path = args.source
+    spec: dict[str, Any] = {"preset": args.preset, "avatar_id": args.avatar_id or _default_avatar_id(source)}
+    for name in ("iterations", "resolution", "seed", "webhook_url"):
+        if getattr(args, name) is not None:
+            spec[name] = getattr(args, name)
+    with _client(args) as client, tempfile.TemporaryDirectory(prefix="blendsplat-jobs-") as tmp:
+        if source.is_dir():
+            archive = Path(tmp) / f"{source.resolve().name or 'dataset'}.tar.gz"
+            print(f"packing {source} ...", file=sys.stderr, flush=True)
+            pack_dataset(source, archive)
+        elif source.is_file():
+            if not source.name.lower().endswith(ARCHIVE_SUFFIXES):
+                raise ClientError(f"{source} is neither a dataset folder nor a .tar.gz, .tar or .zip archive")
+            archive = source
+        else:
+            raise ClientError(f"{source}: no such dataset folder or archive")
+        bar = UploadBar(archive.stat().st_size, archive.name)
+        try:
+            upload = client.upload(archive, progress=bar)
+        finally:
+            bar.close()
+        upload_id = upload.get("upload_id")
+        if not isinstance(upload_id, str):
+            raise ClientError("the server's upload answer has no upload_id")
+        print(f"uploaded {upload.get('frames', '?')} frames of {upload.get('width', '?')}x{upload.get('height', '?')}"
+              f" as {upload_id}", file=sys.stderr, flush=True)
+        job = client.create_job({"upload_id": upload_id, **spec}, idempotency_key=str(uuid.uuid4()))
+        job_id = job.get("id")
+        if not isinstance(job_id, str):
+            raise ClientError("the server's job answer has no id")
+        if not args.wait:
+            _show(client, job, args.json)
+            return EXIT_OK
+        print(f"job {job_id} submitted; following it (Ctrl-C stops waiting, not the job)", file=sys.stderr,
+              flush=True)
+        return _wait(client, args, job_id)
+
+
+def _default_avatar_id(source: Path) -> str:
+    """The avatar id from the dataset's name: letters, digits, ``-`` and ``_`` (what the bundle store accepts)."""
+    name = source.name
+    for suffix in ARCHIVE_SUFFIXES:
+        if name.lower().endswith(suffix):
+            name = name[: -len(suffix)]
+            break
+    cleaned = "".join(c if c.isascii() and (c.isalnum() or c in "-_") else "-" for c in name).strip("-_")
+    return cleaned[:64] or "avatar"
+
+
+def cmd_list(args: argparse.Namespace) -> int:
+    with _client(args) as client:
+        jobs: list[dict[str, Any]] = []
+        cursor = None
+        while len(jobs) < args.limit:
+            page = client.list_jobs(args.state, min(500, args.limit - len(jobs)), cursor)
+            jobs += page.get("jobs") or []
+            cursor = page.get("next_cursor")
+            if not cursor:
+                break
+        if args.json:
+            _print_json({"jobs": jobs, "next_cursor": cursor})
+            return EXIT_OK
+        if not jobs:
+            sys.stdout.write("no jobs\n" if not args.state else f"no {args.state} jobs\n")
+            return EXIT_OK
+        rows = [("ID", "STATE", "PROGRESS", "AVATAR", "PSNR", "CREATED")]
+        for job in jobs:
+            p = job.get("progress") or {}
+            done = (f"{p.get('iteration') or 0}/{p.get('total_iterations') or '?'}"
+                    if p.get("total_iterations") else "")
+            psnr = p.get("psnr")
+            rows.append((str(job.get("id")), str(job.get("state")), done,
+                         str((job.get("spec") or {}).get("avatar_id", "")),
+                         f"{psnr:.2f}" if isinstance(psnr, int | float) else "",
+                         str(job.get("created_at", ""))[:19].replace("T", " ")))
+        widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
+        for r in rows:
+            sys.stdout.write("  ".join(v.ljust(w) for v, w in zip(r, widths, strict=True)).rstrip() + "\n")
+        if cursor:
+            sys.stdout.write(f"(more: --limit {args.limit + 50})\n")
+        return EXIT_OK
+
+
+def cmd_show(args: argparse.Namespace) -> int:
+    with _client(args) as client:
+        _show(client, client.get_job(args.id), args.json)
+        return EXIT_OK
+
+
+def cmd_cancel(args: argparse.Namespace) -> int:
+    with _client(args) as client:
+        job = client.cancel_job(args.id)
+        state = job.get("state")
+        if args.wait and state not in TERMINAL:
+            print(f"job {args.id}: cancel requested; it stops before its next iteration", file=sys.stderr,
+                  flush=True)
+            return _wait(client, args, args.id, want="cancelled")
+        _show(client, job, args.json)
+        if args.wait:
+            return _ended(job, want="cancelled")
+        if state in TERMINAL and state != "cancelled":
+            print(f"job {args.id} had already {state}: nothing to cancel", file=sys.stderr, flush=True)
+        return EXIT_OK
+
+
+def cmd_wait(args: argparse.Namespace) -> int:
+    with _client(args) as client:
+        return _wait(client, args, args.id)
+
+
+def cmd_delete(args: argparse.Namespace) -> int:
+    with _client(args) as client:
+        client.delete_job(args.id)
+        if args.json:
+            _print_json({"id": args.id, "deleted": True})
+        else:
+            sys.stdout.write(f"deleted job {args.id}\n")
+        return EXIT_OK
+
+
+def _run(fn: Callable[[argparse.Namespace], int]) -> Callable[[argparse.Namespace], int]:
+    """A command with the client's error handling: ClientError -> its message on stderr, exit 2."""
+
+    def run(args: argparse.Namespace) -> int:
+        if not getattr(args, "verbose", False):
+            logging.getLogger("httpx").setLevel(logging.WARNING)  # no line per request
+            logging.getLogger("httpcore").setLevel(logging.WARNING)
+        try:
+            return fn(args)
+        except ClientError as exc:
+            print(f"blendsplat: error: {exc}", file=sys.stderr, flush=True)
+            return EXIT_ERROR
+        except KeyboardInterrupt:
+            print("\nblendsplat: interrupted", file=sys.stderr, flush=True)
+            return EXIT_INTERRUPTED
+
+    run.__name__ = fn.__name__
+    return run
+
+
+def _positive(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
+
+
+def _seconds(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected seconds, got {text!r}") from None
+    if not value > 0 or not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"must be a positive number of seconds, got {text!r}")
+    return value
+
+
+EPILOG = ("exit status: 0 success (submit --wait, wait: the job succeeded), 1 the job failed or was cancelled, "
+          "2 a usage, connection, HTTP or timeout error, 130 Ctrl-C while waiting (the job goes on)")
+
+
+def add_commands(commands) -> None:
+    """Register ``blendsplat jobs ...`` on the ``blendsplat`` parser's subcommands."""
+    common = argparse.ArgumentParser(add_help=False)
+    c = common.add_argument_group("common options")
+    c.add_argument("--server", default=None, metavar="URL",
+                   help=f"the service's base URL (default: ${SERVER_ENV}, else {DEFAULT_SERVER})")
+    c.add_argument("--api-key", default=None, metavar="KEY",
+                   help=f"API key, sent as 'Authorization: Bearer KEY' (default: ${KEY_ENV})")
+    c.add_argument("--json", action="store_true", help="print the JSON result (the job: with id and state) on "
+                                                       "stdout")
+
+    jobs = commands.add_parser("jobs", help="training jobs on a Blendsplat service: submit, list, show, cancel, "
+                                            "wait, delete",
+                               description="A client of the training jobs' REST API (/v1/uploads, /v1/jobs). "
+                                           "Results go to stdout; progress bars (when stderr is a terminal), state "
+                                           "changes and errors to stderr.", epilog=EPILOG)
+    sub = jobs.add_subparsers(dest="jobs_command", required=True, metavar="COMMAND")
+
+    def waiting(p: argparse.ArgumentParser) -> None:
+        p.add_argument("--timeout", type=_seconds, default=None, metavar="S",
+                       help="give up waiting after S seconds (exit 2; the job goes on)")
+
+    s = sub.add_parser("submit", parents=[common], epilog=EPILOG, help="upload a dataset and start a training job",
+                       description="Uploads DATASET (a tracked-video folder, docs/tracked-video-format.md, packed "
+                                   "into a temporary .tar.gz; or a .tar.gz/.tar/.zip archive of one) with a progress "
+                                   "bar, then creates the job (with an Idempotency-Key: a retry after a network "
+                                   "error does not make a second job). With --wait, follows it to its end.")
+    s.add_argument("source", type=Path, metavar="DATASET|ARCHIVE", help="dataset folder or archive")
+    s.add_argument("--preset", choices=("tiny", "paper"), default="tiny",
+                   help="tiny: minutes on a CPU; paper: the paper's 40k iterations (default tiny)")
+    s.add_argument("--iterations", type=_positive, default=None, metavar="N", help="default: the preset's")
+    s.add_argument("--avatar-id", default=None, metavar="ID",
+                   help="the trained avatar's id in the bundle store (default: from the dataset's name)")
+    s.add_argument("--resolution", type=_positive, default=None, metavar="PX",
+                   help="longest image side to train at (default: the dataset's)")
+    s.add_argument("--seed", type=int, default=None, help="training seed (default 0)")
+    s.add_argument("--webhook-url", default=None, metavar="URL",
+                   help="the server calls it on the job's state changes (where the server supports webhooks)")
+    s.add_argument("--wait", action="store_true", help="follow the job until it ends; exit 0 only if it succeeded")
+    waiting(s)
+    s.set_defaults(fn=_run(cmd_submit))
+
+    s = sub.add_parser("list", parents=[common], help="jobs, newest first",
+                       description="Jobs, newest first (a table, or {jobs, next_cursor} with --json).")
+    s.add_argument("--state", choices=STATES, default=None, help="only jobs in this state")
+    s.add_argument("--limit", type=_positive, default=20, metavar="N", help="at most N jobs (default 20)")
+    s.set_defaults(fn=_run(cmd_list))
+
+    s = sub.add_parser("show", parents=[common], help="one job: state, progress, result, links",
+                       description="One job: state, progress, error, result (avatar, held-out PSNR) and links.")
+    s.add_argument("id", help="the job's id (job_...)")
+    s.set_defaults(fn=_run(cmd_show))
+
+    s = sub.add_parser("cancel", parents=[common], epilog=EPILOG, help="cancel a job",
+                       description="A queued job is cancelled at once; a running one stops before its next "
+                                   "iteration. With --wait, follows it until it ends: exit 0 if it ended cancelled, "
+                                   "1 if it ended otherwise first.")
+    s.add_argument("id", help="the job's id (job_...)")
+    s.add_argument("--wait", action="store_true", help="wait until the job has stopped")
+    waiting(s)
+    s.set_defaults(fn=_run(cmd_cancel))
+
+    s = sub.add_parser("wait", parents=[common], epilog=EPILOG, help="follow a job until it ends",
+                       description="Follows a job with a progress bar (iteration, loss, PSNR, ETA) from its "
+                                   "server-sent events, or by polling every second where the server has none. Exit "
+                                   "0 if it succeeded, 1 if it failed or was cancelled. Ctrl-C stops waiting, not "
+                                   "the job.")
+    s.add_argument("id", help="the job's id (job_...)")
+    waiting(s)
+    s.set_defaults(fn=_run(cmd_wait))
+
+    s = sub.add_parser("delete", parents=[common], help="delete a job: its row, events and work folder",
+                       description="Deletes a job whatever its state: its row, its events and its work folder "
+                                   "(a running job stops before its next iteration and commits nothing).")
+    s.add_argument("id", help="the job's id (job_...)")
+    s.set_defaults(fn=_run(cmd_delete))
