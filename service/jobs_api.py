@@ -108,6 +108,7 @@ ARTEFACTS: dict[str, tuple[str, str]] = {
     "curves": ("curves.png", "image/png"),
     "contact-sheet": ("contact_sheet.png", "image/png"),
     "preview": ("preview.png", "image/png"),
+    "truth": ("truth.png", "image/png"),
     "log": ("log.jsonl", "application/x-ndjson"),
 }
 
@@ -732,7 +733,8 @@ def cancel_job(job_id: JobId, request: Request, response: Response, principal: C
           summary="A job's artefact: report, summary, curves, contact-sheet, preview or log",
           description="report (report.json: the held-out evaluation), summary (summary.json), curves (curves.png), "
                       "contact-sheet (contact_sheet.png), preview (preview.png: the latest, replaced as training "
-                      "goes), log (log.jsonl). 404 with the reason while one is not written yet.",
+                      "goes), truth (truth.png: the dataset's image of the preview's frame), log (log.jsonl). "
+                      "404 with the reason while one is not written yet.",
           responses={200: {"content": {"application/json": {}, "image/png": {}, "application/x-ndjson": {}}},
                       404: _ERRORS[404]})
 def get_artefact(job_id: JobId, name: ArtefactName, request: Request, principal: Caller("jobs")) -> FileResponse:

@@ -114,6 +114,7 @@ log = logging.getLogger("service.worker")  # the same name when run as __main__
 
 MAX_ERROR_CHARS = 2000
 PREVIEW = "preview.png"
+TRUTH = "truth.png"  # the dataset's image of the preview's frame (written with the first preview)
 BUNDLE = "avatar.bundle"
 IDLE_WAIT_SECONDS = 1.0  # longest single wait for work: how soon an idle worker notices ``stop``
 DB_RETRY_SECONDS = 2.0  # back-off after the job database failed in the loop
@@ -557,7 +558,7 @@ class Worker:
         def on_progress(event: Progress) -> None:
             attempt.record(event)
             if event.preview is not None:
-                self._write_preview(job, workdir, event.iteration, event.preview)
+                self._write_preview(job, workdir, event.iteration, event.preview, trainer)
                 last_preview[0] = event.iteration
             if event.iteration % every == 0:
                 self._set_checkpoint(job, attempt, last_checkpoint(workdir))
@@ -569,7 +570,7 @@ class Worker:
         if outcome is not Outcome.FINISHED or attempt.stop.is_set() or attempt.lost.is_set():
             return self._stop_early(job, attempt, trainer.iteration)
         if preview_every and last_preview[0] != trainer.iteration:
-            self._write_preview(job, workdir, trainer.iteration, trainer.preview())
+            self._write_preview(job, workdir, trainer.iteration, trainer.preview(), trainer)
         summary = trainer.finish(workdir / BUNDLE)
         attempt.refresh()
         if attempt.lost.is_set() or attempt.cancel.is_set():
@@ -612,21 +613,31 @@ class Worker:
         log.info("job %s: handed back at iteration %d", job.id, iteration)
         return "released"
 
-    def _write_preview(self, job: Job, workdir: Path, iteration: int, pixels) -> None:
-        """``preview.png``, replaced atomically (written beside under a ``.png`` name, then renamed), and a
-        ``preview`` event."""
+    def _write_preview(self, job: Job, workdir: Path, iteration: int, pixels, trainer: Trainer) -> None:
+        """``preview.png``, replaced atomically, and a ``preview`` event; with the first one, ``truth.png`` (the
+        dataset's image of the same frame, shown beside it)."""
+        if not (workdir / TRUTH).exists():
+            self._write_image(job, workdir, TRUTH, trainer.preview_truth())
+        if not self._write_image(job, workdir, PREVIEW, pixels):
+            return
+        self._event(job, EventKind.PREVIEW, {"iteration": iteration, "path": PREVIEW})
+
+    @staticmethod
+    def _write_image(job: Job, workdir: Path, name: str, pixels) -> bool:
+        """An image of the work folder, replaced atomically (written beside under a ``.png`` name, then renamed);
+        False (logged) when it could not be written."""
         from render_core.media.files import write_image
 
-        tmp = workdir / f".{PREVIEW}.{secrets.token_hex(6)}.png"
+        tmp = workdir / f".{name}.{secrets.token_hex(6)}.png"
         try:
             write_image(tmp, pixels)
-            publish(tmp, workdir / PREVIEW)
+            publish(tmp, workdir / name)
+            return True
         except OSError as exc:
-            log.warning("job %s: could not write the preview (%s)", job.id, _error_text(exc))
-            return
+            log.warning("job %s: could not write %s (%s)", job.id, name, _error_text(exc))
+            return False
         finally:
             tmp.unlink(missing_ok=True)
-        self._event(job, EventKind.PREVIEW, {"iteration": iteration, "path": PREVIEW})
 
     def _commit(self, bundle: Path, avatar_id: str, tenant: str | None) -> dict:
         """A copy of the trained bundle into the bundle store under ``avatar_id`` (validated, published atomically,

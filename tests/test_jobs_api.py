@@ -586,7 +586,9 @@ def _up_end_to_end(tmp_path: Path, video_archive: bytes, jobs_url: str | None) -
         result = job["result"]
         assert result["avatar_id"] == "trained" and result["iterations"] == 30 and result["digest"]
         assert job["links"]["avatar"] == "/v1/avatars/trained"
-        assert {"report", "summary", "preview", "log"} <= set(job["links"]["artefacts"])
+        assert {"report", "summary", "preview", "truth", "log"} <= set(job["links"]["artefacts"])
+        truth = up.http.get(job["links"]["artefacts"]["truth"])  # the preview's frame from the dataset
+        assert truth.status_code == 200 and truth.content.startswith(b"\x89PNG")
         report = up.http.get(job["links"]["artefacts"]["report"])
         assert report.status_code == 200 and "psnr" in json.dumps(report.json())
         assert up.http.get(job["links"]["avatar"]).json()["digest"] == result["digest"]

@@ -554,6 +554,14 @@ class Trainer:
             rgb, _, _ = forward(self._model, frame, cams, None, rasterize=self.rasterize, threads=self.preset.threads)
         return to_uint8(rgb[0])
 
+    def preview_truth(self) -> np.ndarray:
+        """The dataset's own image of the frame :meth:`preview` renders, the background masked to black as the
+        losses see it: [H, W, 3] uint8 (what a viewer shows beside the preview)."""
+        from ..media.pixels import to_uint8
+
+        rgb, _ = targets(self.dataset, [self.preview_index])
+        return to_uint8(rgb[0])
+
     # ---------------------------------------------------------------------------------------------- the result
     def summary(self) -> dict:
         """What this trainer did since it started or resumed (JSON-ready)."""
