@@ -26,6 +26,7 @@ from typing import Annotated, Any
 from fastapi import APIRouter, FastAPI, Request, WebSocket, WebSocketDisconnect
 from fastapi import Path as PathParam
 from fastapi.exceptions import RequestValidationError
+from fastapi.middleware.cors import CORSMiddleware
 from fastapi.openapi.docs import get_swagger_ui_html
 from fastapi.responses import FileResponse, JSONResponse, Response
 from fastapi.staticfiles import StaticFiles
@@ -530,6 +531,10 @@ def create_app(engine: Engine, training: Training | None = None) -> FastAPI:
     app.add_exception_handler(RequestValidationError, on_invalid)
     app.add_exception_handler(StarletteHTTPException, on_http_exception)
     app.add_middleware(RequestGuard, body_timeout=engine.settings.body_timeout_seconds, closing=app.state.closing)
+    if engine.settings.allowed_origins:  # browsers on other origins (the server's own pages need no CORS)
+        app.add_middleware(CORSMiddleware, allow_origins=engine.settings.allowed_origins, allow_methods=["*"],
+                           allow_headers=["Authorization", "Content-Type", "Idempotency-Key", "Last-Event-ID"],
+                           expose_headers=["Location", "Retry-After", "X-Blendsplat-Timings"], max_age=600)
     bundle = {"schema": {"type": "string", "format": "binary"}}  # any bytes: the server validates the bundle
     document_errors(app, OPEN_PATHS, bodies={
         ("/v1/render", "post"): {"required": True, "content": {"application/json": {

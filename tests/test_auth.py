@@ -373,3 +373,22 @@ def test_bench_stream_takes_the_key_from_the_environment(server):
     env.pop("BLENDSPLAT_API_KEY")
     refused = subprocess.run(command, env=env, capture_output=True, text=True, timeout=120)
     assert refused.returncode != 0 and "UNAUTHENTICATED" in refused.stderr + refused.stdout
+
+
+def test_cors_answers_only_the_allowed_origins(tmp_path):
+    s = LiveServer(tmp_path / "data", auth="keys", allowed_origins=["https://app.example"])
+    try:
+        preflight = {"Access-Control-Request-Method": "GET", "Access-Control-Request-Headers": "authorization"}
+        ok = httpx.options(s.http_url + "/v1/avatars", headers={"Origin": "https://app.example", **preflight})
+        assert ok.status_code == 200 and ok.headers["access-control-allow-origin"] == "https://app.example"
+        assert "authorization" in ok.headers["access-control-allow-headers"].lower()
+        other = httpx.options(s.http_url + "/v1/avatars", headers={"Origin": "https://evil.example", **preflight})
+        assert "access-control-allow-origin" not in other.headers
+        r = httpx.get(s.http_url + "/v1/avatars", headers={"Origin": "https://app.example", **s.headers})
+        assert r.status_code == 200 and r.headers["access-control-allow-origin"] == "https://app.example"
+        with connect(s.ws_url, subprotocols=["blendsplat.v1", f"bearer.{s.api_key}"], open_timeout=30,
+                     additional_headers={"Origin": "https://app.example"}) as ws:  # allowed for the stream too
+            ws.send(pb.StreamRequest(open=pb.SessionConfig(avatar_id="demo", width=16, height=16)).SerializeToString())
+            assert pb.StreamResponse.FromString(ws.recv(timeout=30)).HasField("header")
+    finally:
+        s.stop()
