@@ -112,11 +112,6 @@ class Principal:
                                    + (" (public: only an admin key may change it)" if tenant is None else ""),
                                    field="authorization")
 
-    @property
-    def owner(self) -> str | None:
-        """The tenant that owns what this caller creates."""
-        return self.tenant
-
 
 TRUSTED = Principal(None, None, frozenset({"admin"}))  # auth off, and the process's own calls (warm-up, demo)
 

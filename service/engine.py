@@ -524,7 +524,7 @@ class Engine:
         if exists:  # a new id is the caller's; an existing one must be its tenant's
             self._check_write(principal, avatar_id)
         previous = self.store.owner(avatar_id) if exists else None
-        owner = previous if principal.admin and previous is not None else Owner(principal.owner or ADMIN_TENANT)
+        owner = previous if principal.admin and previous is not None else Owner(principal.tenant or ADMIN_TENANT)
         limit = self.settings.max_upload_bytes
         if declared is not None and declared > limit:
             raise InvalidArgument(f"the upload is {declared} bytes; the limit is {limit}", field="bundle")

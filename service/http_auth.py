@@ -15,7 +15,7 @@ from urllib.parse import urlsplit
 from fastapi import Depends, Request, WebSocket
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
-from .auth import WS_PROTOCOL, PermissionDenied, Principal, bearer, ws_key
+from .auth import WS_PROTOCOL, PermissionDenied, Principal, ws_key
 from .engine import Engine
 
 # Routes that need no key: probes, metrics, the API description and the static pages (they ask for a key).
@@ -35,9 +35,7 @@ def need(scope: str):
     """The dependency of a route that needs ``scope``: the caller, authenticated (401) and allowed (403)."""
     async def caller(request: Request,
                      credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_scheme)]) -> Principal:
-        token = credentials.credentials if credentials is not None else None
-        if token is None and request.headers.get("authorization"):
-            token = bearer(request.headers["authorization"])  # None: not a bearer value, so refused as missing
+        token = credentials.credentials if credentials is not None else None  # None: absent, or not "Bearer"
         principal = await asyncio.to_thread(_engine(request).access.authenticate, token)
         request.state.principal = principal
         return principal.require(scope)
