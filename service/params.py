@@ -199,7 +199,7 @@ def frame(avatar: Avatar, params: pb.FrameParams, order: list[str]) -> Frame:
         unknown = [n for n in params.named_coefficients if n not in known]
         if unknown:
             raise InvalidArgument(f"unknown expression names {some(unknown)}; this avatar has {len(known)}: "
-                                  f"{some(avatar.expression_names, 10)}", field="expression")
+                                  f"{some(avatar.expression_names, 10)}", field="named_coefficients")
         line["expression"] = dict(params.named_coefficients)
     if params.eyelids:
         line["eyelids"] = list(params.eyelids)
@@ -211,7 +211,15 @@ def frame(avatar: Avatar, params: pb.FrameParams, order: list[str]) -> Frame:
     except FrameError as e:  # the frame's check of every joint matrix: name the joint the client sent
         if e.field == "joint_rotations" and (named := _not_a_rotation(joints)) is not None:
             raise named from None
-        raise
+        raise InvalidArgument(e.detail, field=_wire_field(e.field or "", bool(params.named_coefficients))) from None
+
+
+def _wire_field(field: str, named: bool) -> str:
+    """A driving-line field (render_core.drive: ``expression[.name]``, ``joint_rotations``) as the FrameParams field
+    the client sent (``coefficients`` or ``named_coefficients[.name]``, ``joints``)."""
+    if field == "expression" or field.startswith("expression."):
+        return "named_coefficients" + field[len("expression"):] if named else "coefficients"
+    return {"joint_rotations": "joints"}.get(field, field)
 
 
 # ------------------------------------------------------------------------------------------- per-frame budget

@@ -498,7 +498,7 @@ def test_an_open_with_10000_unknown_names_is_invalid_argument_with_a_bounded_tex
     assert "and 9995 more" in details
     stream = Stream(stub, avatar_id="demo", width=SIZE)
     stream.send(frame=pb.FrameParams(index=1, named_coefficients=dict.fromkeys(names, 1.0)))
-    error = expect_error(stream, pb.INVALID_ARGUMENT, "expression")
+    error = expect_error(stream, pb.INVALID_ARGUMENT, "named_coefficients")
     assert "and 9995 more" in error.message and len(error.message) < 1000
     stream.close()
     r = httpx.post(live_server.http_url + "/v1/render", json={"avatarId": "demo", "expressionNames": names},

@@ -190,10 +190,11 @@ def test_named_and_positional_coefficients_agree(stub, reference):
 
 
 BAD_FRAMES = [
-    ("NaN coefficient", pb.FrameParams(index=7, named_coefficients={"exp_00": float("nan")}), "expression.exp_00"),
-    ("Inf coefficient", pb.FrameParams(index=7, coefficients=[float("inf")] + [0.0] * 7), "expression"),
+    ("NaN coefficient", pb.FrameParams(index=7, named_coefficients={"exp_00": float("nan")}),
+     "named_coefficients.exp_00"),
+    ("Inf coefficient", pb.FrameParams(index=7, coefficients=[float("inf")] + [0.0] * 7), "coefficients"),
     ("wrong count", pb.FrameParams(index=7, coefficients=[0.1, 0.2]), "coefficients"),
-    ("unknown name", pb.FrameParams(index=7, named_coefficients={"smile": 1.0}), "expression"),
+    ("unknown name", pb.FrameParams(index=7, named_coefficients={"smile": 1.0}), "named_coefficients"),
     ("both forms", pb.FrameParams(index=7, coefficients=[0.0] * 8, named_coefficients={"exp_00": 1.0}),
      "coefficients"),
     ("unknown joint", pb.FrameParams(index=7, joints={"tail": pb.Rotation(values=[0, 0, 0])}), "joints"),
@@ -244,7 +245,7 @@ def test_bad_stream_messages_over_websocket(live_server):
             stream.send_raw(garbage)
             reply = stream.next()
             assert reply.error.code == pb.INVALID_ARGUMENT and "StreamRequest" in reply.error.message
-            _check_bad_then_good(stream, {"frame": BAD_FRAMES[0][1]}, "expression.exp_00")
+            _check_bad_then_good(stream, {"frame": BAD_FRAMES[0][1]}, "named_coefficients.exp_00")
         finally:
             stream.close()
 
