@@ -77,8 +77,8 @@ def render_request_schema(max_size: int, id_pattern: str) -> dict[str, Any]:
     }, "description": "FrameParams: also joints and camera (proto/blendsplat/v1/render.proto)"}
     return {"type": "object", "required": ["avatarId"], "additionalProperties": False, "properties": {
         "avatarId": {"type": "string", "pattern": id_pattern, "maxLength": 128},
-        "width": {"type": "integer", "minimum": 0, "maximum": max_size, "description": "0: 512 (or height)"},
-        "height": {"type": "integer", "minimum": 0, "maximum": max_size, "description": "0: 512 (or width)"},
+        "width": {"type": "integer", "minimum": 0, "maximum": max_size, "description": "0: the height (a square), or 512"},
+        "height": {"type": "integer", "minimum": 0, "maximum": max_size, "description": "0: the width (a square), or 512"},
         "codec": {"type": "string", "enum": ["CODEC_UNSPECIFIED", "CODEC_JPEG", "CODEC_PNG", "CODEC_RAW_RGBA"]},
         "quality": {"type": "integer", "minimum": 0, "maximum": 100, "description": "JPEG quality (0: 85)"},
         "frame": frame,
