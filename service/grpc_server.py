@@ -29,13 +29,16 @@ from .metrics import Metrics
 log = logging.getLogger(__name__)
 SERVICE_NAME = pb.DESCRIPTOR.services_by_name["RenderService"].full_name
 Reply = TypeVar("Reply")
+STATUS_TRAILER = "blendsplat-status-bin"  # a failed call's blendsplat.v1.Status, serialized
 
 
 @contextlib.asynccontextmanager
 async def status_on_error(context: grpc.aio.ServicerContext, metrics: Metrics | None = None
                           ) -> AsyncIterator[None]:
     """End the call with the status of any error raised inside: its code from :func:`service.errors.to_status`,
-    its details ``"field: message"`` (gRPC has no field slot). Errors that are not typed are INTERNAL, logged."""
+    its details ``"field: message"`` (gRPC has no field slot), and the whole ``blendsplat.v1.Status`` (code,
+    message, field) in the trailing metadata ``blendsplat-status-bin``: the same message a WebSocket client gets
+    for a failed open. Errors that are not typed are INTERNAL, logged."""
     try:
         yield
     except grpc.aio.AbortError:
@@ -47,6 +50,7 @@ async def status_on_error(context: grpc.aio.ServicerContext, metrics: Metrics | 
         if status.code == pb.INTERNAL:
             log.exception("internal error", exc_info=exc)
         details = f"{status.field}: {status.message}" if status.field else status.message
+        context.set_trailing_metadata(((STATUS_TRAILER, status.SerializeToString()),))
         await context.abort(grpc_code(status.code), details)
 
 

@@ -77,10 +77,12 @@ def render_request_schema(max_size: int, id_pattern: str) -> dict[str, Any]:
     }, "description": "FrameParams: also joints and camera (proto/blendsplat/v1/render.proto)"}
     return {"type": "object", "required": ["avatarId"], "additionalProperties": False, "properties": {
         "avatarId": {"type": "string", "pattern": id_pattern, "maxLength": 128},
-        "width": {"type": "integer", "minimum": 0, "maximum": max_size, "description": "0: the height (a square), or 512"},
-        "height": {"type": "integer", "minimum": 0, "maximum": max_size, "description": "0: the width (a square), or 512"},
+        "width": {"type": "integer", "minimum": 0, "maximum": max_size,
+                  "description": "0: the height (a square), or 512"},
+        "height": {"type": "integer", "minimum": 0, "maximum": max_size,
+                   "description": "0: the width (a square), or 512"},
         "codec": {"type": "string", "enum": ["CODEC_UNSPECIFIED", "CODEC_JPEG", "CODEC_PNG", "CODEC_RAW_RGBA"]},
-        "quality": {"type": "integer", "minimum": 0, "maximum": 100, "description": "JPEG quality (0: 85)"},
+        "quality": {"type": "integer", "minimum": 0, "maximum": 100, "description": "JPEG quality (0: default)"},
         "frame": frame,
     }, "examples": [{"avatarId": "demo", "width": 256, "height": 256, "codec": "CODEC_PNG",
                      "frame": {"index": 1}}]}

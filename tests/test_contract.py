@@ -150,3 +150,19 @@ def test_metrics_count_errors_by_code_and_transport_and_misses_only_for_loads(ke
         assert _metric(http, "blendsplat_errors_total", code="UNAUTHENTICATED", transport="websocket") == ws_401 + 1
         assert _metric(http, "blendsplat_avatar_cache_misses_total") == misses  # a missing avatar loads nothing
         assert "blendsplat_frame_bytes_total" in http.get("/metrics").text
+
+
+def test_a_failed_open_gives_the_same_status_on_both_transports(keyed):
+    """gRPC: the call's code, plus the whole Status in the trailer blendsplat-status-bin; WebSocket: the Status
+    message, then the close."""
+    opened = pb.StreamRequest(open=pb.SessionConfig(avatar_id="demo", width=16, height=16, max_in_flight=99))
+    with grpc.insecure_channel(keyed.grpc_target) as channel, pytest.raises(grpc.RpcError) as caught:
+        list(pb_grpc.RenderServiceStub(channel).RenderStream(
+            iter([opened]), metadata=(("authorization", f"Bearer {keyed.api_key}"),)))
+    trailer = dict(caught.value.trailing_metadata())["blendsplat-status-bin"]
+    over_grpc = pb.Status.FromString(trailer)
+    with connect(keyed.ws_url, subprotocols=["blendsplat.v1", f"bearer.{keyed.api_key}"], open_timeout=30) as ws:
+        ws.send(opened.SerializeToString())
+        over_ws = pb.StreamResponse.FromString(ws.recv(timeout=30)).status
+    assert over_grpc == over_ws and over_ws.code == pb.INVALID_ARGUMENT and over_ws.field == "max_in_flight"
+    assert caught.value.code() == grpc.StatusCode.INVALID_ARGUMENT
