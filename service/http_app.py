@@ -33,6 +33,7 @@ from fastapi.staticfiles import StaticFiles
 from google.protobuf import json_format
 from google.protobuf.message import DecodeError
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
+from pydantic import BaseModel, Field
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import compile_path
 from swagger_ui_bundle import swagger_ui_path
@@ -222,23 +223,51 @@ AvatarId = Annotated[str, PathParam(pattern=AVATAR_ID_PATTERN.pattern, max_lengt
                                                 "starting with a letter or digit)")]
 
 
-@avatars.get("", summary="Avatars in the bundle store (and whether this replica has them loaded)")
-async def list_avatars(request: Request, principal: Caller("render")) -> dict:
-    return as_json(pb.ListAvatarsResponse(avatars=_engine(request).list_avatars(principal)))
+class AvatarOut(BaseModel):
+    """An avatar as REST answers it: blendsplat.v1.AvatarInfo with its proto field names and plain numbers."""
+
+    id: str
+    loaded: bool = Field(description="in this replica's cache")
+    gaussians: int = Field(description="face + mouth")
+    mouth_gaussians: int
+    expression_names: list[str]
+    joint_names: list[str]
+    sh_degree: int
+    precision: str = Field(description="blendshape storage: fp32 or fp16")
+    face_model: str
+    file_bytes: int
+    memory_bytes: int = Field(description="resident in this replica's cache (0 when not loaded)")
+    digest: str = Field(description="sha256 of the bundle's content")
+
+    @classmethod
+    def of(cls, info: pb.AvatarInfo) -> AvatarOut:
+        return cls(**{name: getattr(info, name) for name in cls.model_fields})
 
 
-@avatars.get("/{avatar_id}", summary="Describe one avatar: counts, expression and joint names, precision")
-async def get_avatar(avatar_id: AvatarId, request: Request, principal: Caller("render")) -> dict:
-    return as_json(_engine(request).avatar_info(avatar_id, principal))
+class AvatarList(BaseModel):
+    avatars: list[AvatarOut]
 
 
-@avatars.put("/{avatar_id}", status_code=201, summary="Upload (create or replace) an avatar bundle",
+@avatars.get("", response_model=AvatarList,
+             summary="Avatars in the bundle store (and whether this replica has them loaded)")
+async def list_avatars(request: Request, principal: Caller("render")) -> AvatarList:
+    return AvatarList(avatars=[AvatarOut.of(a) for a in _engine(request).list_avatars(principal)])
+
+
+@avatars.get("/{avatar_id}", response_model=AvatarOut,
+             summary="Describe one avatar: counts, expression and joint names, precision")
+async def get_avatar(avatar_id: AvatarId, request: Request, principal: Caller("render")) -> AvatarOut:
+    return AvatarOut.of(_engine(request).avatar_info(avatar_id, principal))
+
+
+@avatars.put("/{avatar_id}", status_code=201, response_model=AvatarOut,
+             summary="Upload (create or replace) an avatar bundle",
              description="The body is the bundle file (any Content-Type). It is fully validated before it "
                          "replaces anything; an invalid or oversize upload leaves the store unchanged.")
-async def put_avatar(avatar_id: AvatarId, request: Request, principal: Caller("avatars:write")) -> dict:
+async def put_avatar(avatar_id: AvatarId, request: Request, principal: Caller("avatars:write")) -> AvatarOut:
     declared = request.headers.get("content-length", "")  # a plain number, else the stream's size decides
     size = int(declared) if declared.isascii() and declared.isdigit() and len(declared) <= 18 else None
-    return as_json(await _engine(request).replace(avatar_id, request.stream(), size, principal))
+    return AvatarOut.of(await _engine(request).replace(avatar_id, request.stream(), size, principal))
 
 
 @avatars.delete("/{avatar_id}", status_code=204, response_class=Response,
@@ -249,14 +278,15 @@ async def delete_avatar(avatar_id: AvatarId, request: Request, principal: Caller
     return Response(status_code=204)
 
 
-@avatars.post("/{avatar_id}/load", summary="Load an avatar into this replica's cache")
-async def load_avatar(avatar_id: AvatarId, request: Request, principal: Caller("render")) -> dict:
-    return as_json(await _engine(request).load(avatar_id, principal))
+@avatars.post("/{avatar_id}/load", response_model=AvatarOut, summary="Load an avatar into this replica's cache")
+async def load_avatar(avatar_id: AvatarId, request: Request, principal: Caller("render")) -> AvatarOut:
+    return AvatarOut.of(await _engine(request).load(avatar_id, principal))
 
 
-@avatars.post("/{avatar_id}/unload", summary="Drop an avatar from this replica's cache (the bundle stays)")
-async def unload_avatar(avatar_id: AvatarId, request: Request, principal: Caller("avatars:write")) -> dict:
-    return as_json(_engine(request).unload(avatar_id, principal))
+@avatars.post("/{avatar_id}/unload", response_model=AvatarOut,
+              summary="Drop an avatar from this replica's cache (the bundle stays)")
+async def unload_avatar(avatar_id: AvatarId, request: Request, principal: Caller("avatars:write")) -> AvatarOut:
+    return AvatarOut.of(_engine(request).unload(avatar_id, principal))
 
 
 # --------------------------------------------------------------------------------------------------- rendering

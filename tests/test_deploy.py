@@ -277,7 +277,7 @@ def test_smoke_commands_and_variables_are_real():
     from service import cli
 
     text = re.sub(r"\\\n\s*", " ", (DEPLOY / "smoke").read_text())
-    runs = re.findall(r' run -d [^\n]*?"\$IMAGE" ([^>|\n]*?)\s*(?:>|$)', text, re.M)
+    runs = re.findall(r' (?:run -d|create) [^\n]*?"\$IMAGE" ([^>|\n]*?)\s*(?:>|$)', text, re.M)
     parsed = [parse_command([re.sub(r'^"\$\w+"$', "9100", a) for a in run.split()]).fn for run in runs]
     assert parsed == [cli.cmd_serve, cli.cmd_worker, cli.cmd_serve], runs  # serve, worker, serve restarted
     fields = settings_fields()

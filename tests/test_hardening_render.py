@@ -257,8 +257,8 @@ def test_fuzzed_frames_over_websocket_and_rest_never_get_500(live_server):
     """The same parameters over the WebSocket (protobuf JSON) and POST /v1/render: 200, or a named 4xx."""
     rng = np.random.default_rng(41)
     http = httpx.Client(base_url=live_server.http_url, timeout=60)
-    names = http.get("/v1/avatars/demo").json()["expressionNames"]
-    joints = http.get("/v1/avatars/demo").json()["jointNames"]
+    names = http.get("/v1/avatars/demo").json()["expression_names"]
+    joints = http.get("/v1/avatars/demo").json()["joint_names"]
     with connect(live_server.ws_url, max_size=64 << 20, open_timeout=30) as ws:
         open_ = pb.StreamRequest(open=pb.SessionConfig(avatar_id="demo", width=SIZE, max_in_flight=16))
         ws.send(json_format.MessageToJson(open_))

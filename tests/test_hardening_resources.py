@@ -155,7 +155,7 @@ def test_avatars_without_blendshapes_or_mouth_upload_over_an_id_and_render(serve
         r = server.http.post("/v1/render", json={"avatarId": "odd", "width": 32, "height": 32, "codec": "CODEC_PNG"})
         assert r.status_code == 200 and r.content.startswith(b"\x89PNG"), r.text
     info = server.http.get("/v1/avatars/odd").json()
-    assert info["expressionNames"] == [] and info["loaded"] is True
+    assert info["expression_names"] == [] and info["loaded"] is True
 
 
 # ---------------------------------------------------------------------------------------------- sizes first

@@ -485,7 +485,7 @@ def test_engine_load_unload_replace(live_server, tmp_path):
         assert loaded.loaded and loaded.memory_bytes > loaded.file_bytes
         # Over HTTP, replacing it while it is loaded: the new bundle is what the next load gets.
         r = http.put("/v1/avatars/swap", content=data[200])
-        assert r.status_code == 201 and r.json()["loaded"] is False and r.json()["gaussians"] == str(200 + 25)
+        assert r.status_code == 201 and r.json()["loaded"] is False and r.json()["gaussians"] == 200 + 25
         assert live_server.call(engine.load("swap")).gaussians == 200 + 25
         assert engine.unload("swap").loaded is False and engine.avatar_info("swap").loaded is False
         with pytest.raises(Exception, match="bundle: not a valid avatar bundle"):
@@ -516,7 +516,7 @@ def test_rest_avatars_render_and_errors(live_server, reference):
     ready = http.get("/readyz")
     assert ready.status_code == 200 and ready.json()["ready"] is True
     avatars = http.get("/v1/avatars").json()["avatars"]
-    assert avatars[0]["id"] == "demo" and avatars[0]["expressionNames"] == reference[0].expression_names
+    assert avatars[0]["id"] == "demo" and avatars[0]["expression_names"] == reference[0].expression_names
     assert http.get("/v1/avatars/nobody").status_code == 404
     assert http.post("/v1/avatars/demo/unload").json()["loaded"] is False
     assert http.post("/v1/avatars/demo/load").json()["loaded"] is True
@@ -548,7 +548,7 @@ def test_rest_upload_validates_before_storing(live_server, tmp_path):
     try:
         r = http.put("/v1/avatars/small", content=data)
         assert r.status_code == 201, r.text
-        assert r.json()["gaussians"] == str(300 + 300 // 8)
+        assert r.json()["gaussians"] == 300 + 300 // 8
         assert "small" in [a["id"] for a in http.get("/v1/avatars").json()["avatars"]]
 
         corrupt = bytearray(data)
