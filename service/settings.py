@@ -9,7 +9,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field, model_validator
+from pydantic import Field, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 
@@ -116,6 +116,16 @@ class Settings(BaseSettings):
                                 "connection closes (a client then reopens its stream)")
     grpc_max_connection_idle_seconds: float = Field(
         0.0, ge=0, description="a gRPC connection with no call this long is closed; 0: never")
+
+    @field_validator("admin_key")
+    @classmethod
+    def _admin_key(cls, value: str | None) -> str | None:
+        from .jobs.keys import parse_token
+
+        if value is not None and parse_token(value) is None:
+            raise ValueError("an admin key is bsk_<10 hex>_<43 URL-safe base64 characters> (`blendsplat keys create`) "
+                             "or 16 to 512 printable characters without spaces (e.g. `openssl rand -hex 32`)")
+        return value
 
     @model_validator(mode="after")
     def _tls_pair(self) -> Settings:

@@ -392,3 +392,22 @@ def test_cors_answers_only_the_allowed_origins(tmp_path):
             assert pb.StreamResponse.FromString(ws.recv(timeout=30)).HasField("header")
     finally:
         s.stop()
+
+
+def test_an_admin_key_from_the_settings_may_be_any_long_secret(tmp_path):
+    """BLENDSPLAT_ADMIN_KEY from a Kubernetes Secret (e.g. `openssl rand -hex 32`): registered at start, accepted,
+    and no admin.key file is written."""
+    secret = "trial-admin-key-change-me"
+    s = LiveServer(tmp_path / "data", auth="keys", admin_key=secret)
+    try:
+        assert not (tmp_path / "data" / "admin.key").exists()
+        assert httpx.get(s.http_url + "/v1/avatars", headers=auth(secret)).status_code == 200
+        assert httpx.get(s.http_url + "/v1/avatars", headers=auth(secret[:-1] + "X")).status_code == 401
+    finally:
+        s.stop()
+    from pydantic import ValidationError
+
+    from service.settings import Settings
+
+    with pytest.raises(ValidationError, match="an admin key is"):  # a bad deployment fails at start, named
+        Settings(admin_key="short")

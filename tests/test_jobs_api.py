@@ -364,7 +364,7 @@ def test_artefacts_are_served_from_the_work_folder_only(server, archives):
     message = error(server.http.get(f"/v1/jobs/{job_id}/artefacts/report"), 404, "NOT_FOUND", "name")
     assert "no report yet" in message
     message = error(server.http.get(f"/v1/jobs/{job_id}/artefacts/secrets"), 422, "INVALID_ARGUMENT", "name")
-    assert "'report', 'summary', 'curves', 'contact-sheet', 'preview' or 'log'" in message  # the path's enum
+    assert "'report', 'summary', 'curves', 'contact-sheet', 'preview', 'truth' or 'log'" in message  # the enum
     for bad in ("..%2F..%2Fjobs.db", "%2E%2E", "report.json", "log.jsonl", "%2Fetc%2Fpasswd"):
         assert server.http.get(f"/v1/jobs/{job_id}/artefacts/{bad}").status_code in (404, 422), bad
     work = server.data_dir / "work" / job_id

@@ -5,6 +5,9 @@ A key is ``bsk_<id>_<secret>``: ``id`` (10 hex characters) names it in lists, lo
 keyed hash is not needed: the secret is random, so its hash cannot be searched. Each key has one tenant and a set
 of scopes (:data:`SCOPES`); a revoked key keeps its row (its id stays in the audit trail) and never verifies again.
 
+A key made elsewhere (``admin_key``, e.g. ``openssl rand -hex 32`` in a Kubernetes Secret) may have any form of
+16 to 512 printable characters: its id is the start of its SHA-256 and the whole key is hashed.
+
 The job database is shared by every replica and worker (PostgreSQL in a cluster), so a key created or revoked
 through one replica holds on all of them (each caches a verified key for :data:`CACHE_SECONDS`).
 """
@@ -35,6 +38,7 @@ SCOPE_HELP = {
 }
 TENANT_PATTERN = re.compile(r"^[a-z0-9][a-z0-9._-]{0,62}$")
 _TOKEN = re.compile(r"^bsk_([0-9a-f]{10})_([A-Za-z0-9_-]{43})$")
+_EXTERNAL = re.compile(r"^[!-~]{16,512}$")  # a key made elsewhere: printable ASCII, no spaces
 
 
 class KeyRecord(Base):
@@ -84,9 +88,14 @@ def _digest(secret: str) -> str:
 
 
 def parse_token(token: str) -> tuple[str, str] | None:
-    """``(id, secret)`` of a well-formed key, else None."""
+    """``(id, secret)`` of a well-formed key (``bsk_<id>_<secret>``, or a key made elsewhere: the start of its
+    SHA-256 and the whole key), else None."""
     match = _TOKEN.match(token or "")
-    return (match[1], match[2]) if match else None
+    if match:
+        return match[1], match[2]
+    if _EXTERNAL.match(token or ""):
+        return hashlib.sha256(token.encode("ascii")).hexdigest()[:10], token
+    return None
 
 
 def check_scopes(scopes: Iterable[str]) -> tuple[str, ...]:
@@ -125,8 +134,8 @@ class KeyStore:
         else:
             parsed = parse_token(secret)
             if parsed is None:
-                raise InvalidArgument("not an API key (bsk_<10 hex>_<43 URL-safe base64 characters>); make one "
-                                      "with `blendsplat keys create`", field="key")
+                raise InvalidArgument("not an API key: bsk_<10 hex>_<43 URL-safe base64 characters> (`blendsplat keys "
+                                      "create`), or 16 to 512 printable characters without spaces", field="key")
             key_id, secret_part = parsed
         record = KeyRecord(id=key_id, secret_sha256=_digest(secret_part), tenant=tenant, scopes=" ".join(chosen),
                            name=name, created_at=datetime.now(UTC), revoked_at=None)
@@ -134,10 +143,10 @@ class KeyStore:
             existing = session.get(KeyRecord, key_id)
             if existing is not None:
                 if secret is not None and hmac.compare_digest(existing.secret_sha256, record.secret_sha256):
-                    return ApiKey.of(existing), f"{PREFIX}_{key_id}_{secret_part}"  # already registered
+                    return ApiKey.of(existing), secret  # already registered
                 raise InvalidArgument(f"a key with id {key_id} exists already", field="key")
             session.add(record)
-        return ApiKey.of(record), f"{PREFIX}_{key_id}_{secret_part}"
+        return ApiKey.of(record), secret or f"{PREFIX}_{key_id}_{secret_part}"
 
     def verify(self, token: str) -> ApiKey | None:
         """The active key ``token`` is, or None (malformed, unknown, wrong secret or revoked)."""
