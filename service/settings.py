@@ -105,6 +105,10 @@ class Settings(BaseSettings):
                                                                   "one (with jitter)")
     webhook_backoff_max_seconds: float = Field(3600.0, gt=0, description="the longest delay between retries")
     webhook_poll_seconds: float = Field(1.0, gt=0, description="how often the dispatcher looks for due webhooks")
+    webhook_private_networks: bool = Field(
+        False, description="allow webhooks to hosts that resolve to loopback, private, link-local or other "
+                           "non-public addresses (off: such a delivery fails at once, so a job cannot make the "
+                           "service call into its own network)")
 
     # Deployment: gRPC connections of long-lived streams (service/grpc_server.py), so replicas rebalance.
     grpc_max_connection_age_seconds: float = Field(

@@ -41,11 +41,13 @@ import binascii
 import contextlib
 import hashlib
 import hmac
+import ipaddress
 import json
 import logging
 import os
 import random
 import secrets
+import socket
 import time
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
@@ -215,12 +217,13 @@ class WebhookDispatcher:
                    "webhook-timestamp": str(timestamp),
                    "webhook-signature": sign(self.secret, delivery.id, timestamp, body)}
         status: int | None = None
-        error: str | None = None
-        try:
-            async with client.stream("POST", delivery.url, content=body, headers=headers) as response:
-                status = response.status_code  # the body is not read
-        except httpx.HTTPError as exc:
-            error = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
+        error = None if s.webhook_private_networks else await _non_public(delivery.url)
+        if error is None:
+            try:
+                async with client.stream("POST", delivery.url, content=body, headers=headers) as response:
+                    status = response.status_code  # the body is not read
+            except httpx.HTTPError as exc:
+                error = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
         self.sent += 1
         delivered = status is not None and 200 <= status < 300
         retry_at = None
@@ -228,8 +231,8 @@ class WebhookDispatcher:
             now = datetime.now(UTC)
             when = now + timedelta(seconds=retry_delay(delivery.attempts, s.webhook_backoff_seconds,
                                                        s.webhook_backoff_max_seconds))
-            if delivery.attempts < s.webhook_max_attempts and \
-                    when <= delivery.created_at + timedelta(seconds=s.webhook_retry_seconds):
+            if (delivery.attempts < s.webhook_max_attempts and not (error or "").startswith(REFUSED)
+                    and when <= delivery.created_at + timedelta(seconds=s.webhook_retry_seconds)):
                 retry_at = when
         try:
             after = await asyncio.to_thread(self.store.record_attempt, delivery.id, delivery.attempts,
@@ -244,6 +247,28 @@ class WebhookDispatcher:
         elif not delivered:
             log.info("webhook %s attempt %d: %s; retrying at %s", delivery.id, delivery.attempts,
                      error or f"HTTP {status}", retry_at.isoformat() if retry_at else "-")
+
+
+REFUSED = "refused: "  # an attempt the dispatcher would not make (not retried)
+
+
+async def _non_public(url: str) -> str | None:
+    """Why a webhook URL may not be called (its host resolves to a loopback, private, link-local, multicast or
+    reserved address: a job's owner must not reach the service's own network through it), or None. The address is
+    checked just before each attempt; a name that resolves to a public address then and to a private one a moment
+    later (DNS rebinding) is not caught: use network policy too (deploy/base/networkpolicy.yaml)."""
+    parts = urlsplit(url)
+    try:
+        infos = await asyncio.get_running_loop().getaddrinfo(parts.hostname, parts.port or 443,
+                                                             type=socket.SOCK_STREAM)
+    except OSError as exc:
+        return f"cannot resolve {parts.hostname!r} ({exc.strerror or exc})"  # retried: DNS may come back
+    for *_, address in infos:
+        ip = ipaddress.ip_address(address[0].split("%", 1)[0])
+        if not ip.is_global:
+            return (f"{REFUSED}{parts.hostname} resolves to {ip}, not a public address (setting "
+                    "webhook_private_networks)")
+    return None
 
 
 def _host(url: str) -> str:

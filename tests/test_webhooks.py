@@ -35,7 +35,9 @@ from service.webhooks import WebhookDispatcher, load_secret, retry_delay, sign
 
 SECRET = "whsec_" + base64.b64encode(b"a test key of thirty-two bytes!!").decode()
 OTHER_SECRET = "whsec_" + base64.b64encode(b"another key, not the service's").decode()
-FAST = {"webhook_backoff_seconds": 0.02, "webhook_backoff_max_seconds": 0.2, "webhook_poll_seconds": 0.02}
+# the receivers listen on loopback, which production refuses (webhook_private_networks; tested on its own below)
+FAST = {"webhook_backoff_seconds": 0.02, "webhook_backoff_max_seconds": 0.2, "webhook_poll_seconds": 0.02,
+        "webhook_private_networks": True}
 
 
 def verify(secret: str, headers, body: bytes, tolerance: float = 300) -> bool:
@@ -407,3 +409,23 @@ def test_two_dispatchers_never_claim_one_delivery_and_a_lost_claim_comes_back(ur
         assert store.record_attempt(stale.id, 2, delivered=False, status=500, retry_at=later).status \
             is DeliveryStatus.DELIVERED
         assert stale.id not in {d.id for d in store.claim_deliveries(100, 60, now=later + timedelta(hours=1))}
+
+
+def test_a_webhook_to_a_non_public_address_is_refused_without_a_request(tmp_path):
+    """By default a job cannot make the service call into its own network: loopback, private and link-local
+    addresses are refused before any request, once (not retried), with the reason on the job."""
+    receiver = Receiver()
+    try:
+        config = settings(tmp_path, webhook_private_networks=False)
+        with JobStore.open(config.jobs_database_url) as store:
+            job_id = job_with_webhook(store, receiver.url)
+            other = job_with_webhook(store, "http://169.254.169.254/latest/meta-data")  # a cloud metadata address
+            run_dispatcher(config, store, lambda: all(store.deliveries(j)[0].status is DeliveryStatus.FAILED
+                                                      for j in (job_id, other)))
+            deliveries = [store.deliveries(j)[0] for j in (job_id, other)]
+        for delivery in deliveries:
+            assert delivery.attempts == 1 and delivery.last_status is None
+            assert "not a public address" in delivery.last_error
+        assert receiver.attempts(deliveries[0].id) == 0 and receiver.accepted == []
+    finally:
+        receiver.close()
