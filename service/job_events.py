@@ -41,7 +41,7 @@ import logging
 import threading
 import time
 import weakref
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 from typing import TYPE_CHECKING, Any
 
 from fastapi import FastAPI
@@ -203,21 +203,28 @@ async def _follow(training: Training, job_id: str, after: int, registry: EventSt
                 waiter.cancel()
 
 
-def event_stream(app: FastAPI, training: Training, job_id: str, after: int) -> StreamingResponse:
+def event_stream(app: FastAPI, training: Training, job_id: str, after: int,
+                 on_close: Callable[[], None] | None = None) -> StreamingResponse:
     """The response that streams a job's events after id ``after`` (the caller has checked the job exists and may
-    be read). ResourceExhausted (429) when this process has ``events_max_streams`` open."""
+    be read). ResourceExhausted (429) when this process has ``events_max_streams`` open. ``on_close`` (called once,
+    whenever the stream ends or never starts) frees what the caller holds for it (the key's stream slot)."""
     registry = streams(app)
     slot = registry.reserve()
     drain = getattr(app.state, "closing", None)  # set when the server drains (service.http_app)
+
+    def release() -> None:  # each part is idempotent
+        slot.release()
+        if on_close is not None:
+            on_close()
 
     async def body() -> AsyncIterator[bytes]:
         try:
             async for chunk in _follow(training, job_id, after, registry, drain):
                 yield chunk
         finally:
-            slot.release()
+            release()
 
     iterator = body()
-    weakref.finalize(iterator, slot.release)  # a response that never started streaming frees its slot too
+    weakref.finalize(iterator, release)  # a response that never started streaming frees its slot too
     return StreamingResponse(iterator, media_type=MEDIA_TYPE,
                              headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})

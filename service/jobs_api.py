@@ -760,7 +760,13 @@ def follow_job(job_id: JobId, request: Request, principal: Caller("jobs"),
     training = _training(request)
     training.job_for(job_id, principal)  # NotFound: the one JSON 404, not a stream
     start = job_events.last_event_id(last_event_id, after)
-    return job_events.event_stream(request.app, training, job_id, start)
+    release = training.access.take_stream(principal) if training.access is not None else None  # a key's streams
+    try:
+        return job_events.event_stream(request.app, training, job_id, start, on_close=release)
+    except BaseException:
+        if release is not None:
+            release()
+        raise
 
 
 @jobs.delete("/{job_id}", status_code=204, response_class=Response,

@@ -257,6 +257,23 @@ def test_limits_per_key_answer_429_with_retry_after_and_admin_keys_are_exempt(se
     assert statuses[5].json()["error"]["code"] == "RESOURCE_EXHAUSTED"
 
 
+def test_a_keys_event_streams_count_against_its_stream_limit(server, http, tiny_video_archive):
+    key = make_key(server, "follower", "jobs")  # key_max_sessions = 1 on this server
+    upload = http.post("/v1/uploads", files={"file": ("v.tgz", tiny_video_archive)}, headers=auth(key))
+    job = http.post("/v1/jobs", json={"upload_id": upload.json()["upload_id"], "preset": "tiny", "iterations": 5,
+                                      "avatar_id": "followed"}, headers=auth(key)).json()["id"]
+    with http.stream("GET", f"/v1/jobs/{job}/events", headers=auth(key)) as first:
+        assert first.status_code == 200  # the job stays queued (no worker here): the stream stays open
+        second = http.get(f"/v1/jobs/{job}/events", headers=auth(key))
+        assert second.status_code == 429 and int(second.headers["retry-after"]) > 0
+    assert http.post(f"/v1/jobs/{job}/cancel", headers=auth(key)).status_code == 202  # ended: a stream replays
+    deadline = time.monotonic() + 10  # the first stream closed: its slot comes back once the server notices
+    while (again := http.get(f"/v1/jobs/{job}/events", headers=auth(key))).status_code == 429:
+        assert time.monotonic() < deadline, "the closed stream's slot never came back"
+        time.sleep(0.2)
+    assert again.status_code == 200 and "event: end" in again.text
+
+
 def test_a_tenant_cannot_store_past_its_quota(server, http, tmp_path):
     key = make_key(server, "quota", "avatars:write")
     big = bundle_bytes(tmp_path, 9, gaussians=12_000)
