@@ -77,8 +77,8 @@ class Settings(BaseSettings):
     allowed_origins: list[str] = Field(
         [], description="browser origins (scheme://host[:port]) allowed for CORS and WebSocket; the server's own "
                         "pages are always allowed")
-    key_max_sessions: int = Field(8, ge=1, description="concurrent streams per non-admin key (more: 429 / "
-                                                       "RESOURCE_EXHAUSTED)")
+    key_max_sessions: int = Field(8, ge=1, description="concurrent streams (render and job events) per non-admin "
+                                                       "key and replica (more: 429 / RESOURCE_EXHAUSTED)")
     key_uploads_per_hour: int = Field(20, ge=1, description="uploads (datasets and bundles) per non-admin key per "
                                                             "hour")
     key_jobs_per_hour: int = Field(20, ge=1, description="training jobs submitted per non-admin key per hour")
