@@ -188,12 +188,8 @@ class Adapters:
         m = loaded.manifest
         expressions = [n for n in m.source_names if joint_component(n) is None]
         if source_names:
-            unknown = [n for n in source_names if n not in expressions]
-            if unknown:
-                raise InvalidArgument(f"adapter {adapter_id!r} has no source names {some(unknown)}; it takes "
-                                      f"{some(expressions, 10)}", field="source_names")
-            if len(set(source_names)) != len(source_names):
-                raise InvalidArgument("source names repeat", field="source_names")
+            params.checked_order(source_names, expressions, "source names", f"adapter {adapter_id!r} takes",
+                                 "source_names")
         return SessionAdapter(loaded, avatar, source_names or expressions, smoothing)
 
 

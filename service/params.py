@@ -61,13 +61,19 @@ def expression_order(avatar: Avatar, names: list[str]) -> list[str]:
     """The order of positional coefficients: the client's (checked) or the avatar's."""
     if not names:
         return list(avatar.expression_names)
-    known = set(avatar.expression_names)
-    unknown = [n for n in names if n not in known]
+    return checked_order(names, avatar.expression_names, "expression names", "this avatar has", "expression_names")
+
+
+def checked_order(names: list[str], known: list[str], what: str, whose: str, field: str) -> list[str]:
+    """``names``, a client's order of positional values, when each is one of ``known`` and none repeats
+    (InvalidArgument naming ``field`` otherwise: the unknown ones and what ``whose`` has, bounded)."""
+    known_set = set(known)
+    unknown = [n for n in names if n not in known_set]
     if unknown:
-        raise InvalidArgument(f"unknown expression names {some(unknown)}; this avatar has "
-                              f"{len(known)}: {some(avatar.expression_names, 10)}", field="expression_names")
+        raise InvalidArgument(f"unknown {what} {some(unknown)}; {whose} {len(known)}: {some(known, 10)}",
+                              field=field)
     if len(set(names)) != len(names):
-        raise InvalidArgument("expression names repeat", field="expression_names")
+        raise InvalidArgument(f"{what} repeat", field=field)
     return list(names)
 
 
