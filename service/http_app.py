@@ -540,6 +540,7 @@ def create_app(engine: Engine, training: Training | None = None) -> FastAPI:
     for router in (avatars, render, adapters, ops):
         app.include_router(router)
     app.mount("/static/swagger", StaticFiles(directory=swagger_ui_path), name="swagger-ui")
+    app.mount("/static/app", StaticFiles(directory=STATIC), name="pages")  # the pages' shared theme.css
     if training is not None:
         for router in TRAINING_ROUTERS:
             app.include_router(router)

@@ -302,6 +302,8 @@ class ScriptedJobs:
                 base = f"/v1/jobs/{script.JOB}"
                 if path == "/jobs":
                     self._send(200, PAGE.read_bytes(), "text/html")
+                elif path == "/static/app/theme.css":  # the pages' shared stylesheet, as the app serves it
+                    self._send(200, (PAGE.parent / "theme.css").read_bytes(), "text/css")
                 elif path == "/v1/jobs":
                     self._json(200, {"jobs": [script.job()], "next_cursor": None})
                 elif path == base:
