@@ -230,7 +230,7 @@ class Access:
         returned, once, when the stream ends. Admin keys and trusted calls have no limit."""
         key = principal.key_id
         if key is None or principal.admin:
-            return _nothing
+            return no_release
         limit = self.settings.key_max_sessions
         with self._lock:
             if self._sessions[key] >= limit:
@@ -277,8 +277,8 @@ class Access:
                        principal.tenant or "-", extra)
 
 
-def _nothing() -> None:
-    pass
+def no_release() -> None:
+    """What :meth:`Access.take_stream` hands back when nothing was taken (admin keys, trusted calls)."""
 
 
 def _principal(key: ApiKey) -> Principal:

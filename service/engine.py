@@ -53,7 +53,7 @@ from render_core.media.codecs import Encoder, make_encoder
 from render_core.media.pixels import to_rgba8
 
 from . import params
-from .auth import ADMIN_TENANT, TRUSTED, Access, Principal
+from .auth import ADMIN_TENANT, TRUSTED, Access, Principal, no_release
 from .cache import AvatarCache, Loaded
 from .errors import InvalidArgument, NotFound, ResourceExhausted, ServiceError, Unavailable, to_status
 from .metrics import Metrics
@@ -107,10 +107,6 @@ class Rendered:
     timings: pb.StageTimings
 
 
-def _nothing() -> None:
-    pass
-
-
 class Session:
     """One stream. Created by :meth:`Engine.open`; every method runs on the event loop."""
 
@@ -146,7 +142,7 @@ class Session:
         self.sent = self.dropped = 0
         self.input_done = False
         self.closed = False
-        self.release_slot = _nothing  # the key's stream slot (Engine.open sets it)
+        self.release_slot = no_release  # the key's stream slot (Engine.open sets it)
         self._replies: asyncio.Queue[pb.StreamResponse | None] = asyncio.Queue()
         self._queued_errors = 0
 

@@ -27,6 +27,7 @@ from render_core.bundle import write_bundle
 from render_core.tools.synth import synth_avatar
 from service.auth import CACHE_SECONDS
 from service.grpc_server import SCOPES as RPC_SCOPES
+from service.http_app import routes as app_routes
 from service.http_auth import OPEN_PATHS
 from service.jobs import SCOPES, KeyStore
 
@@ -82,17 +83,9 @@ def route_scope(route: APIRoute | APIWebSocketRoute) -> str | None:
     return None
 
 
-def all_routes(routes, prefix: str = ""):
-    """Every route of the app, with its full path (FastAPI keeps an included router as one entry)."""
-    for route in routes:
-        if hasattr(route, "original_router"):
-            yield from all_routes(route.original_router.routes, prefix + route.include_context.prefix)
-        elif isinstance(route, APIRoute | APIWebSocketRoute):
-            yield (prefix + route.path, route)
-
-
 def protected_routes(server):
-    routes = [(path, r) for path, r in all_routes(server.service.app.routes) if path not in OPEN_PATHS]
+    routes = [(path, r) for path, r in app_routes(server.service.app)
+              if path not in OPEN_PATHS and isinstance(r, APIRoute | APIWebSocketRoute)]
     assert len(routes) >= 15, [path for path, _ in routes]  # the avatar, render, upload and job routes
     return routes
 

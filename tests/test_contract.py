@@ -8,6 +8,7 @@ import httpx
 import pytest
 from conftest import LiveServer
 from grpc_reflection.v1alpha import reflection_pb2
+from test_service import _metric as metric
 from websockets.sync.client import connect
 
 from blendsplat.v1 import render_pb2 as pb
@@ -124,11 +125,7 @@ def test_grpc_reflection_is_served_as_v1_and_v1alpha(keyed):
 
 
 def _metric(http: httpx.Client, name: str, **labels) -> float:
-    wanted = ",".join(f'{k}="{v}"' for k, v in labels.items())
-    for line in http.get("/metrics").text.splitlines():
-        if line.startswith(f"{name}{{{wanted}}}" if labels else f"{name} "):
-            return float(line.rsplit(" ", 1)[1])
-    return 0.0
+    return metric(http.get("/metrics").text, name, ",".join(f'{k}="{v}"' for k, v in labels.items()))
 
 
 def test_metrics_count_errors_by_code_and_transport_and_misses_only_for_loads(keyed):
