@@ -72,8 +72,8 @@ class Adapters:
     def info(self, adapter_id: str) -> dict[str, Any]:
         """The record of one adapter as the API shows it (NotFound naming ``adapter``)."""
         record, m = self._record(adapter_id)
-        return {"id": adapter_id, "tenant": record.get("tenant"), "modelBytes": record.get("model_bytes"),
-                "modelSha256": record.get("model_sha256"), "manifest": m.to_dict()}
+        return {"id": adapter_id, "tenant": record.get("tenant"), "model_bytes": record.get("model_bytes"),
+                "model_sha256": record.get("model_sha256"), "manifest": m.to_dict()}
 
     def list(self) -> list[dict[str, Any]]:
         out = []

@@ -21,7 +21,7 @@ import json
 import logging
 import uuid
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, FastAPI, Request, WebSocket, WebSocketDisconnect
 from fastapi import Path as PathParam
@@ -41,6 +41,7 @@ from swagger_ui_bundle import swagger_ui_path
 from blendsplat.v1 import render_pb2 as pb
 from render_core.errors import BlendsplatError
 
+from .adapters import MAX_ADAPTER_BYTES
 from .auth import Access, RateLimited, Unauthenticated
 from .engine import AVATAR_ID_PATTERN, Engine
 from .errors import InvalidArgument, ServiceError, Unavailable, http_status, to_status
@@ -293,12 +294,19 @@ async def unload_avatar(avatar_id: AvatarId, request: Request, principal: Caller
 render = APIRouter(tags=["render"])
 
 
+FRAME_RESPONSE = {"description": "the frame, encoded as the codec asks", "content": {
+    media: {"schema": {"type": "string", "format": "binary"}} for media in ("image/jpeg", "image/png",
+                                                                            "application/octet-stream")},
+    "headers": {"X-Blendsplat-Timings": {"description": "per-stage milliseconds (JSON)", "schema": {"type": "string"}}}}
+
+
 @render.post("/v1/render", summary="Render one frame",
-             description="The body is a RenderRequest in protobuf JSON, e.g. {\"avatarId\": \"demo\", \"width\": 256,"
-                         " \"codec\": \"CODEC_PNG\", \"frame\": {\"index\": 1}} (named coefficients are the "
-                         "avatar's expression names: GET /v1/avatars/{id}). The answer is the encoded image; "
+             description="The body is a RenderRequest as JSON with its proto field names, e.g. {\"avatar_id\": "
+                         "\"demo\", \"width\": 256, \"codec\": \"CODEC_PNG\", \"frame\": {\"index\": 1}} "
+                         "(protobuf's camelCase names are accepted too; named coefficients are the avatar's "
+                         "expression names: GET /v1/avatars/{id}). The answer is the encoded image; "
                          "X-Blendsplat-Timings holds the per-stage milliseconds.",
-             response_class=Response)
+             response_class=Response, responses={200: FRAME_RESPONSE})
 async def render_frame(request: Request, principal: Caller("render")) -> Response:
     limit = _engine(request).settings.max_message_bytes
     body = await _bounded_body(request, limit)
@@ -412,21 +420,66 @@ AdapterId = Annotated[str, PathParam(pattern=AVATAR_ID_PATTERN.pattern, max_leng
 _ADAPTER_UPLOAD = (16 << 20) + (2 << 20)  # the model's limit (service/adapters.py) plus the manifest and framing
 
 
-@adapters.get("", summary="Retargeting adapters in the store (ONNX models mapping a tracker's coefficients to a "
-                          "face model's)")
+class AdapterSource(BaseModel):
+    convention: str = Field(description="the source's naming: arkit-52, flame or custom")
+    face_model: str = Field(description="the tracker's face model, or empty")
+    names: list[str] = Field(description="the model's inputs in order: expression names, and <joint>.x/.y/.z for a "
+                                         "source joint's axis-angle components")
+
+
+Bound = float | Literal["inf", "-inf"]  # JSON has no infinity
+
+
+class AdapterTarget(BaseModel):
+    face_model: str = Field(description="the avatars it drives have this face model")
+    expression_names: list[str]
+    joint_names: list[str]
+    expression_min: list[Bound] | None = Field(description="the clamp the model applies, per target expression")
+    expression_max: list[Bound] | None
+
+
+class AdapterManifestOut(BaseModel):
+    """The adapter manifest (docs/method.md section 12)."""
+
+    format: Literal["blendsplat-adapter"]
+    version: int
+    id: str
+    source: AdapterSource
+    target: AdapterTarget
+    opset: int
+    provenance: dict[str, Any] = Field(description="how it was made (free-form)")
+
+
+class AdapterOut(BaseModel):
+    id: str
+    tenant: str | None = Field(description="the owning tenant; null: the deployment's (every key may use it)")
+    model_bytes: int
+    model_sha256: str
+    manifest: AdapterManifestOut
+
+
+class AdapterList(BaseModel):
+    adapters: list[AdapterOut]
+
+
+@adapters.get("", response_model=AdapterList,
+              summary="Retargeting adapters in the store (ONNX models mapping a tracker's coefficients to a face "
+                      "model's)")
 async def list_adapters(request: Request, principal: Caller("render")) -> dict:
     return {"adapters": [a for a in _engine(request).adapters.list()
                          if principal.may_read(a.get("tenant"), a.get("tenant") is None)]}
 
 
-@adapters.get("/{adapter_id}", summary="One adapter: its manifest (source and target names), owner, size, digest")
+@adapters.get("/{adapter_id}", response_model=AdapterOut,
+              summary="One adapter: its manifest (source and target names), owner, size, digest")
 async def get_adapter(adapter_id: AdapterId, request: Request, principal: Caller("render")) -> dict:
     info = _engine(request).adapters.info(adapter_id)
     principal.check_read(f"adapter {adapter_id!r}", info.get("tenant"), info.get("tenant") is None)
     return info
 
 
-@adapters.put("/{adapter_id}", status_code=201, summary="Upload (create or replace) a retargeting adapter",
+@adapters.put("/{adapter_id}", status_code=201, response_model=AdapterOut,
+              summary="Upload (create or replace) a retargeting adapter",
               description="multipart/form-data with two parts: `manifest` (the JSON manifest, docs/method.md "
                           "section 12; its id may be left out) and `model` (the .onnx file), e.g. curl -X PUT -F "
                           "manifest=@m.json -F model=@a.onnx. Both are validated (size, opsets, operators, no "
@@ -456,6 +509,17 @@ async def put_adapter(adapter_id: AdapterId, request: Request, principal: Caller
     return info
 
 
+ADAPTER_UPLOAD_BODY = {"required": True, "description": "the adapter: its manifest and its ONNX model", "content": {
+    "multipart/form-data": {
+        "schema": {"type": "object", "required": ["manifest", "model"], "properties": {
+            "manifest": {"type": "string", "format": "binary",
+                         "description": "the manifest, JSON (docs/method.md section 12)"},
+            "model": {"type": "string", "format": "binary", "maxLength": MAX_ADAPTER_BYTES,
+                      "description": "the ONNX model (opset 13-21, the allowed operators, no external data)"}}},
+        "encoding": {"manifest": {"contentType": "application/json"},
+                     "model": {"contentType": "application/octet-stream"}}}}}
+
+
 def _check_adapter_write(request: Request, adapter_id: str, principal) -> None:
     """Adapters without a tenant are the deployment's (every key may use them; admin keys change them)."""
     try:
@@ -465,7 +529,8 @@ def _check_adapter_write(request: Request, adapter_id: str, principal) -> None:
     principal.check_write(f"adapter {adapter_id!r}", info.get("tenant"))
 
 
-@adapters.delete("/{adapter_id}", summary="Delete an adapter (sessions using it keep their loaded copy)")
+@adapters.delete("/{adapter_id}", response_model=AdapterOut,
+                 summary="Delete an adapter (sessions using it keep their loaded copy); answers what was deleted")
 async def delete_adapter(adapter_id: AdapterId, request: Request, principal: Caller("avatars:write")) -> dict:
     _check_adapter_write(request, adapter_id, principal)
     Access.audit(principal, "adapter.delete", adapter_id)
@@ -474,14 +539,28 @@ async def delete_adapter(adapter_id: AdapterId, request: Request, principal: Cal
 
 # ----------------------------------------------------------------------------------------------- operations
 ops = APIRouter(tags=["operations"])
+PAGE = {200: {"content": {"text/html": {"schema": {"type": "string"}}}, "description": "the page"}}
 
 
-@ops.get("/healthz", summary="Liveness: the process answers")
+class Health(BaseModel):
+    status: Literal["ok"]
+
+
+class Readiness(BaseModel):
+    ready: bool
+    checks: dict[str, bool] = Field(description="each readiness check by name (settings, bundle_store, warm_up, "
+                                               "not_draining, job_database...)")
+    reasons: dict[str, str] | None = Field(None, description="when not ready: why, for each failing check")
+
+
+@ops.get("/healthz", response_model=Health, summary="Liveness: the process answers")
 async def healthz() -> dict:
     return {"status": "ok"}
 
 
-@ops.get("/readyz", summary="Readiness: settings valid, bundle store reachable, warm-up frame rendered, not draining")
+@ops.get("/readyz", response_model=Readiness,
+         responses={503: {"model": Readiness, "description": "not ready: the reasons, check by check"}},
+         summary="Readiness: settings valid, bundle store reachable, warm-up frame rendered, not draining")
 async def readyz(request: Request) -> JSONResponse:
     checks = _engine(request).readiness()
     ready = all(checks.values())
@@ -494,7 +573,9 @@ async def readyz(request: Request) -> JSONResponse:
     return JSONResponse(body, status_code=200 if ready else 503)
 
 
-@ops.get("/metrics", summary="Prometheus metrics", response_class=Response)
+@ops.get("/metrics", summary="Prometheus metrics", response_class=Response,
+         responses={200: {"content": {"text/plain": {"schema": {"type": "string"}}},
+                          "description": "the Prometheus text exposition format"}})
 async def metrics(request: Request) -> Response:
     # off the event loop: the job metrics query the job database when scraped
     body = await asyncio.to_thread(generate_latest, _engine(request).metrics.registry)
@@ -516,13 +597,13 @@ async def api_docs() -> Response:
 
 
 @ops.get("/demo", summary="A page with sliders that drives an avatar over the WebSocket stream",
-         response_class=FileResponse)
+         response_class=FileResponse, responses=PAGE)
 async def demo() -> FileResponse:
     return FileResponse(STATIC / "demo.html", media_type="text/html")
 
 
 @ops.get("/jobs", summary="A page to upload a dataset, start a training job, watch it learn live, cancel, delete, "
-                          "and open the trained avatar in /demo", response_class=FileResponse)
+                          "and open the trained avatar in /demo", response_class=FileResponse, responses=PAGE)
 async def jobs_page() -> FileResponse:
     return FileResponse(STATIC / "jobs.html", media_type="text/html")
 
@@ -572,5 +653,6 @@ def create_app(engine: Engine, training: Training | None = None) -> FastAPI:
             "schema": render_request_schema(engine.settings.max_size, AVATAR_ID_PATTERN.pattern)}}},
         ("/v1/avatars/{avatar_id}", "put"): {"required": True, "content": {"application/octet-stream": bundle},
                                              "description": "the bundle file (safetensors, schema 2)"},
+        ("/v1/adapters/{adapter_id}", "put"): ADAPTER_UPLOAD_BODY,
     })
     return app

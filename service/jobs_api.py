@@ -735,8 +735,11 @@ def cancel_job(job_id: JobId, request: Request, response: Response, principal: C
                       "contact-sheet (contact_sheet.png), preview (preview.png: the latest, replaced as training "
                       "goes), truth (truth.png: the dataset's image of the preview's frame), log (log.jsonl). "
                       "404 with the reason while one is not written yet.",
-          responses={200: {"content": {"application/json": {}, "image/png": {}, "application/x-ndjson": {}}},
-                      404: _ERRORS[404]})
+          responses={200: {"content": {
+              "application/json": {"schema": {"type": "object", "description": "report or summary"}},
+              "image/png": {"schema": {"type": "string", "format": "binary"}},
+              "application/x-ndjson": {"schema": {"type": "string", "description": "one JSON event per line"}}}},
+              404: _ERRORS[404]})
 def get_artefact(job_id: JobId, name: ArtefactName, request: Request, principal: Caller("jobs")) -> FileResponse:
     training = _training(request)
     training.job_for(job_id, principal)
@@ -750,9 +753,9 @@ def get_artefact(job_id: JobId, name: ArtefactName, request: Request, principal:
                       "header or `?after=`), `event` (progress, state, preview, log) and one line of JSON `data`. "
                       "A finished job's stream sends what is left and `event: end`, then closes. See "
                       "service/job_events.py.",
-          responses={200: {"content": {"text/event-stream": {}}}, 429: {"model": ErrorBody,
-                                                                       "description": "too many streams open"},
-                     **_ERRORS})
+          responses={200: {"content": {"text/event-stream": {"schema": {
+              "type": "string", "description": "id:, event:, data: lines (one JSON object) per event"}}}},
+              429: {"model": ErrorBody, "description": "too many streams open"}, **_ERRORS})
 def follow_job(job_id: JobId, request: Request, principal: Caller("jobs"),
                after: Annotated[int | None, Query(ge=0)] = None,
                last_event_id: Annotated[str | None, Header(alias="Last-Event-ID", max_length=64)] = None,

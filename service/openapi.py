@@ -60,23 +60,24 @@ def _error(status: int) -> dict[str, Any]:
 
 
 def render_request_schema(max_size: int, id_pattern: str) -> dict[str, Any]:
-    """RenderRequest's protobuf JSON (the fields a single-frame render reads; see proto/blendsplat/v1/render.proto
-    for each one's meaning). Expression names are the avatar's own (GET /v1/avatars/{id}): unknown ones are refused
+    """RenderRequest as JSON with its proto field names (snake_case; protobuf's camelCase JSON names are accepted
+    too, as on the WebSocket): the fields a single-frame render reads (proto/blendsplat/v1/render.proto gives each
+    one's meaning). Expression names are the avatar's own (GET /v1/avatars/{id}): unknown ones are refused
     with 422 naming them, as are poses and cameras that are not rotations and calibrations."""
     number = {"type": "number", "minimum": -3.0e38, "maximum": 3.0e38}  # a float32
     unit = {"type": "number", "minimum": 0, "maximum": 1}
     frame = {"type": "object", "additionalProperties": False, "properties": {
         "index": {"type": "integer", "minimum": 0, "maximum": 2**63 - 1, "description": "echoed back (0: unset)"},
-        "clientTimeUs": {"type": "integer", "minimum": -(2**63), "maximum": 2**63 - 1,
+        "client_time_us": {"type": "integer", "minimum": -(2**63), "maximum": 2**63 - 1,
                          "description": "the client's timestamp, echoed"},
-        "namedCoefficients": {"type": "object", "additionalProperties": number,
+        "named_coefficients": {"type": "object", "additionalProperties": number,
                               "description": "by the avatar's expression names (unknown names: 422)"},
         "eyelids": {"type": "array", "items": unit, "maxItems": 2, "description": "none, or [left, right]"},
         "background": {"type": "object", "additionalProperties": False,
                        "properties": {"r": unit, "g": unit, "b": unit}},
     }, "description": "FrameParams: also joints and camera (proto/blendsplat/v1/render.proto)"}
-    return {"type": "object", "required": ["avatarId"], "additionalProperties": False, "properties": {
-        "avatarId": {"type": "string", "pattern": id_pattern, "maxLength": 128},
+    return {"type": "object", "required": ["avatar_id"], "additionalProperties": False, "properties": {
+        "avatar_id": {"type": "string", "pattern": id_pattern, "maxLength": 128},
         "width": {"type": "integer", "minimum": 0, "maximum": max_size,
                   "description": "0: the height (a square), or 512"},
         "height": {"type": "integer", "minimum": 0, "maximum": max_size,
@@ -84,8 +85,36 @@ def render_request_schema(max_size: int, id_pattern: str) -> dict[str, Any]:
         "codec": {"type": "string", "enum": ["CODEC_UNSPECIFIED", "CODEC_JPEG", "CODEC_PNG", "CODEC_RAW_RGBA"]},
         "quality": {"type": "integer", "minimum": 0, "maximum": 100, "description": "JPEG quality (0: default)"},
         "frame": frame,
-    }, "examples": [{"avatarId": "demo", "width": 256, "height": 256, "codec": "CODEC_PNG",
+    }, "examples": [{"avatar_id": "demo", "width": 256, "height": 256, "codec": "CODEC_PNG",
                      "frame": {"index": 1}}]}
+
+
+# What a created resource's answer leads to (OpenAPI links: client generators and schemathesis' stateful phase
+# follow them): (path, method, status) of the creating operation -> the operations its id addresses.
+LINKS: dict[tuple[str, str, str], tuple[str, str, list[tuple[str, str]]]] = {
+    ("/v1/uploads", "post", "201"): ("upload_id", "$response.body#/upload_id", [
+        ("/v1/uploads/{upload_id}", "get"), ("/v1/uploads/{upload_id}", "delete")]),
+    ("/v1/jobs", "post", "201"): ("job_id", "$response.body#/id", [
+        ("/v1/jobs/{job_id}", "get"), ("/v1/jobs/{job_id}/events", "get"), ("/v1/jobs/{job_id}/cancel", "post"),
+        ("/v1/jobs/{job_id}", "delete")]),
+    ("/v1/avatars/{avatar_id}", "put", "201"): ("avatar_id", "$response.body#/id", [
+        ("/v1/avatars/{avatar_id}", "get"), ("/v1/avatars/{avatar_id}/load", "post"),
+        ("/v1/avatars/{avatar_id}/unload", "post"), ("/v1/avatars/{avatar_id}", "delete")]),
+    ("/v1/adapters/{adapter_id}", "put", "201"): ("adapter_id", "$response.body#/id", [
+        ("/v1/adapters/{adapter_id}", "get"), ("/v1/adapters/{adapter_id}", "delete")]),
+}
+
+
+def _add_links(paths: dict[str, Any]) -> None:
+    for (path, method, status), (parameter, value, targets) in LINKS.items():
+        response = paths.get(path, {}).get(method, {}).get("responses", {}).get(status)
+        if response is None:
+            continue
+        response["links"] = {
+            f"{target_method}{target.replace('/', '_').replace('{', '').replace('}', '')}": {
+                "operationRef": "#/paths/" + target.replace("~", "~0").replace("/", "~1") + f"/{target_method}",
+                "parameters": {parameter: value}}
+            for target, target_method in targets if target_method in paths.get(target, {})}
 
 
 def document_errors(app: FastAPI, open_paths: frozenset[str],
@@ -121,6 +150,7 @@ def document_errors(app: FastAPI, open_paths: frozenset[str],
                     responses.setdefault(str(status), _error(status))
                 if "422" in responses and "HTTPValidationError" in str(responses["422"]):
                     responses["422"] = _error(422)
+        _add_links(schema.get("paths", {}))
         app.openapi_schema = schema
         return schema
 

@@ -174,7 +174,7 @@ def test_adapter_rest_api_lists_uploads_validates_and_deletes(http, setup):
     listed = http.get("/v1/adapters").json()["adapters"]
     assert [a["id"] for a in listed] == [ADAPTER] and listed[0]["tenant"] is None
     one = http.get(f"/v1/adapters/{ADAPTER}").json()
-    assert one["manifest"]["source"]["names"] == ARKIT_52 and one["modelBytes"] == len(data)
+    assert one["manifest"]["source"]["names"] == ARKIT_52 and one["model_bytes"] == len(data)
     assert http.get("/v1/adapters/ghost").status_code == 404
     full = result.manifest.to_dict()
     manifest = {k: v for k, v in full.items() if k != "id"}  # the id comes from the path
