@@ -16,8 +16,8 @@ One :class:`Access` per process, held by the :class:`~service.engine.Engine` (bo
   creates an admin key in ``<data_dir>/admin.key`` (mode 0600) and logs where; ``admin_key`` (e.g. from a
   Kubernetes Secret) is registered instead. ``auth=off`` accepts every call as admin, with a warning at start.
 - **Limits per key** (admin keys are exempt): concurrent streams, uploads and jobs per hour, each RESOURCE_EXHAUSTED
-  (HTTP 429) with the seconds to wait (``Retry-After``). Counted per process: with N replicas a key may reach N
-  times the stream limit, and the hourly windows restart with a process.
+  (HTTP 429) with the seconds to wait (``Retry-After``). Shared by every replica through Redis when ``redis_url``
+  is set, else counted per process (:mod:`service.limits`).
 - **Audit**: one line on the ``blendsplat.audit`` logger for every avatar write, unload and delete, key change and
   job submission: the action, its target, the key and tenant.
 
@@ -30,11 +30,9 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import logging
-import math
 import os
 import threading
 import time
-from collections import defaultdict, deque
 from collections.abc import Callable
 from pathlib import Path
 
@@ -42,6 +40,7 @@ from blendsplat.v1 import render_pb2 as pb
 
 from .errors import ResourceExhausted, ServiceError
 from .jobs.keys import ApiKey, KeyStore, parse_token
+from .limits import Limits, LocalLimits, limits_for, no_release
 from .settings import Settings
 
 log = logging.getLogger(__name__)
@@ -64,14 +63,6 @@ class PermissionDenied(ServiceError):
     """A valid key without the scope, or another tenant's resource: HTTP 403, gRPC PERMISSION_DENIED."""
 
     code = pb.PERMISSION_DENIED
-
-
-class RateLimited(ResourceExhausted):
-    """A per-key limit: HTTP 429 with ``Retry-After``, gRPC RESOURCE_EXHAUSTED."""
-
-    def __init__(self, message: str, *, retry_after: float, field: str | None = None):
-        super().__init__(message, field=field)
-        self.retry_after = max(1, math.ceil(retry_after))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -129,27 +120,10 @@ def ws_key(protocols: list[str]) -> str | None:
     return next((p[len(WS_KEY_PREFIX):] for p in protocols if p.startswith(WS_KEY_PREFIX)), None)
 
 
-class _Window:
-    """Events in the last hour, per key (a sliding window)."""
-
-    def __init__(self, limit: int, what: str):
-        self.limit, self.what = limit, what
-        self._events: dict[str, deque[float]] = defaultdict(deque)
-
-    def take(self, key_id: str, now: float) -> None:
-        events = self._events[key_id]
-        while events and events[0] <= now - HOUR:
-            events.popleft()
-        if len(events) >= self.limit:
-            raise RateLimited(f"this key may make {self.limit} {self.what} per hour; try again later",
-                              retry_after=events[0] + HOUR - now, field="authorization")
-        events.append(now)
-
-
 class Access:
     """Authentication, ownership rules, per-key limits and audit for one process (see the module docstring)."""
 
-    def __init__(self, settings: Settings, keys: KeyStore | None):
+    def __init__(self, settings: Settings, keys: KeyStore | None, on_limit_failure: Callable[[], None] | None = None):
         self.settings = settings
         self.enabled = settings.auth == "keys"
         self.keys = keys
@@ -157,9 +131,8 @@ class Access:
             raise ValueError("auth=keys needs the job database (its api_keys table)")
         self._cache: dict[str, tuple[Principal, float]] = {}
         self._lock = threading.Lock()
-        self._sessions: dict[str, int] = defaultdict(int)
-        self._uploads = _Window(settings.key_uploads_per_hour, "uploads")
-        self._jobs = _Window(settings.key_jobs_per_hour, "job submissions")
+        # per-key limits: shared by the replicas through Redis when redis_url is set (service/limits.py)
+        self.limits: Limits = limits_for(settings.redis_url, on_limit_failure) if self.enabled else LocalLimits()
         self.usage: list[Callable[[str], int]] = []  # bytes a tenant stores, per store (check_quota sums them)
 
     # ---- start-up ----
@@ -228,24 +201,9 @@ class Access:
     def take_stream(self, principal: Principal) -> Callable[[], None]:
         """Take one of the key's concurrent streams (RateLimited when it holds its limit); call the function
         returned, once, when the stream ends. Admin keys and trusted calls have no limit."""
-        key = principal.key_id
-        if key is None or principal.admin:
+        if principal.key_id is None or principal.admin:
             return no_release
-        limit = self.settings.key_max_sessions
-        with self._lock:
-            if self._sessions[key] >= limit:
-                raise RateLimited(f"this key may hold {limit} streams at once on this replica; end one first",
-                                  retry_after=1, field="authorization")
-            self._sessions[key] += 1
-        released = False
-
-        def release() -> None:
-            nonlocal released
-            with self._lock:
-                if not released:
-                    released = True
-                    self._sessions[key] -= 1
-        return release
+        return self.limits.take_stream(principal.key_id, self.settings.key_max_sessions)
 
     def check_quota(self, principal: Principal, incoming: int) -> None:
         """ResourceExhausted when the caller's tenant would store more than ``tenant_storage_bytes`` with
@@ -261,13 +219,14 @@ class Access:
 
     def count_upload(self, principal: Principal) -> None:
         if principal.key_id is not None and not principal.admin:
-            with self._lock:
-                self._uploads.take(principal.key_id, time.monotonic())
+            self.limits.take_event(principal.key_id, "uploads", self.settings.key_uploads_per_hour)
 
     def count_job(self, principal: Principal) -> None:
         if principal.key_id is not None and not principal.admin:
-            with self._lock:
-                self._jobs.take(principal.key_id, time.monotonic())
+            self.limits.take_event(principal.key_id, "job submissions", self.settings.key_jobs_per_hour)
+
+    def close(self) -> None:
+        self.limits.close()
 
     # ---- audit ----
     @staticmethod
@@ -275,10 +234,6 @@ class Access:
         extra = "".join(f" {k}={v}" for k, v in details.items())
         audit_log.info("%s %s by key=%s tenant=%s%s", action, target, principal.key_id or "-",
                        principal.tenant or "-", extra)
-
-
-def no_release() -> None:
-    """What :meth:`Access.take_stream` hands back when nothing was taken (admin keys, trusted calls)."""
 
 
 def _principal(key: ApiKey) -> Principal:

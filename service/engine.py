@@ -53,9 +53,10 @@ from render_core.media.codecs import Encoder, make_encoder
 from render_core.media.pixels import to_rgba8
 
 from . import params
-from .auth import ADMIN_TENANT, TRUSTED, Access, Principal, no_release
+from .auth import ADMIN_TENANT, TRUSTED, Access, Principal
 from .cache import AvatarCache, Loaded
 from .errors import InvalidArgument, NotFound, ResourceExhausted, ServiceError, Unavailable, to_status
+from .limits import no_release
 from .metrics import Metrics
 from .settings import Settings
 from .store import ID_PATTERN as AVATAR_ID_PATTERN  # noqa: F401 - the transports' avatar id pattern

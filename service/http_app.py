@@ -42,12 +42,13 @@ from blendsplat.v1 import render_pb2 as pb
 from render_core.errors import BlendsplatError
 
 from .adapters import MAX_ADAPTER_BYTES
-from .auth import Access, RateLimited, Unauthenticated
+from .auth import Access, Unauthenticated
 from .engine import AVATAR_ID_PATTERN, Engine
 from .errors import InvalidArgument, ServiceError, Unavailable, http_status, to_status
 from .http_auth import OPEN_PATHS, Caller, websocket_caller, websocket_subprotocol
 from .jobs_api import ROUTERS as TRAINING_ROUTERS
 from .jobs_api import Training
+from .limits import RateLimited
 from .openapi import document_errors, render_request_schema
 from .uploads import UploadTooLarge
 

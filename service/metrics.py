@@ -49,6 +49,8 @@ class Metrics:
                                     registry=r)
         self.cache_bytes = Gauge("blendsplat_avatar_cache_bytes", "memory held by loaded avatars", registry=r)
         self.cache_avatars = Gauge("blendsplat_avatar_cache_avatars", "loaded avatars", registry=r)
+        self.limit_failures = Counter("blendsplat_limit_checks_failed", "per-key limit checks that could not reach "
+                                      "Redis (let through: limits fail open)", registry=r)
         self.ready = Gauge("blendsplat_ready", "1 when the process takes new streams", registry=r)
         for stage in STAGES:
             self.stage.labels(stage)

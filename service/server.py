@@ -110,7 +110,8 @@ class Service:
     async def start(self) -> None:
         s, engine = self.settings, self.engine
         self.training = await asyncio.to_thread(Training.open, s, engine.metrics)
-        engine.access = Access(s, KeyStore(self.training.jobs.engine))
+        engine.access = Access(s, KeyStore(self.training.jobs.engine),
+                               on_limit_failure=engine.metrics.limit_failures.inc)
         engine.access.usage = [engine.store.tenant_bytes, self.training.uploads.tenant_bytes]
         await asyncio.to_thread(engine.access.bootstrap)
         self.training.access = engine.access
@@ -229,6 +230,7 @@ class Service:
             await webhooks_stopped
         if self.training is not None:
             await asyncio.to_thread(self.training.close)
+        await asyncio.to_thread(self.engine.access.close)  # gives back this replica's stream leases at once
         self.stopped.set()
         log.info("stopped")
 

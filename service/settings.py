@@ -78,7 +78,11 @@ class Settings(BaseSettings):
         [], description="browser origins (scheme://host[:port]) allowed for CORS and WebSocket; the server's own "
                         "pages are always allowed")
     key_max_sessions: int = Field(8, ge=1, description="concurrent streams (render and job events) per non-admin "
-                                                       "key and replica (more: 429 / RESOURCE_EXHAUSTED)")
+                                                       "key (more: 429 / RESOURCE_EXHAUSTED); per replica unless "
+                                                       "redis_url is set")
+    redis_url: str | None = Field(
+        None, description="Redis (redis://[:password@]host:6379/0, rediss:// for TLS) holding the per-key limits, "
+                          "so every replica counts against the same ones; unset: each replica counts its own")
     key_uploads_per_hour: int = Field(20, ge=1, description="uploads (datasets and bundles) per non-admin key per "
                                                             "hour")
     key_jobs_per_hour: int = Field(20, ge=1, description="training jobs submitted per non-admin key per hour")
