@@ -52,7 +52,7 @@ import time
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
 from typing import TYPE_CHECKING
-from urllib.parse import urlsplit
+from urllib.parse import urlsplit, urlunsplit
 
 import httpx
 
@@ -217,10 +217,18 @@ class WebhookDispatcher:
                    "webhook-timestamp": str(timestamp),
                    "webhook-signature": sign(self.secret, delivery.id, timestamp, body)}
         status: int | None = None
-        error = None if s.webhook_private_networks else await _non_public(delivery.url)
+        url, extensions = delivery.url, {}
+        if not s.webhook_private_networks:
+            address, error = await _public_address(delivery.url)
+            if address is not None:
+                url, host, extensions = _pinned(delivery.url, address)
+                headers["host"] = host
+        else:
+            error = None
         if error is None:
             try:
-                async with client.stream("POST", delivery.url, content=body, headers=headers) as response:
+                async with client.stream("POST", url, content=body, headers=headers,
+                                         extensions=extensions) as response:
                     status = response.status_code  # the body is not read
             except httpx.HTTPError as exc:
                 error = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
@@ -252,23 +260,37 @@ class WebhookDispatcher:
 REFUSED = "refused: "  # an attempt the dispatcher would not make (not retried)
 
 
-async def _non_public(url: str) -> str | None:
-    """Why a webhook URL may not be called (its host resolves to a loopback, private, link-local, multicast or
-    reserved address: a job's owner must not reach the service's own network through it), or None. The address is
-    checked just before each attempt; a name that resolves to a public address then and to a private one a moment
-    later (DNS rebinding) is not caught: use network policy too (deploy/base/networkpolicy.yaml)."""
+async def _public_address(url: str) -> tuple[str | None, str | None]:
+    """The address to send a webhook to, or None and why it may not be called: its host resolves to a loopback,
+    private, link-local, multicast or reserved address (a job's owner must not reach the service's own network
+    through it). Resolved once per attempt, and the request goes to the address checked (:func:`_pinned`), so a
+    name that answers a public address to the check and a private one to the connection (DNS rebinding) gains
+    nothing."""
     parts = urlsplit(url)
     try:
         infos = await asyncio.get_running_loop().getaddrinfo(parts.hostname, parts.port or 443,
                                                              type=socket.SOCK_STREAM)
     except OSError as exc:
-        return f"cannot resolve {parts.hostname!r} ({exc.strerror or exc})"  # retried: DNS may come back
-    for *_, address in infos:
-        ip = ipaddress.ip_address(address[0].split("%", 1)[0])
+        return None, f"cannot resolve {parts.hostname!r} ({exc.strerror or exc})"  # retried: DNS may come back
+    addresses = [ipaddress.ip_address(address[0].split("%", 1)[0]) for *_, address in infos]
+    for ip in addresses:
         if not ip.is_global:
-            return (f"{REFUSED}{parts.hostname} resolves to {ip}, not a public address (setting "
-                    "webhook_private_networks)")
-    return None
+            return None, (f"{REFUSED}{parts.hostname} resolves to {ip}, not a public address (setting "
+                          "webhook_private_networks)")
+    if not addresses:
+        return None, f"cannot resolve {parts.hostname!r} (no address)"
+    return str(addresses[0]), None
+
+
+def _pinned(url: str, address: str) -> tuple[str, str, dict[str, str]]:
+    """``url`` sent to ``address``: the URL with that address as its host (user info and port kept), the Host
+    header it had, and for https the name TLS sends (SNI) and verifies the certificate against."""
+    parts = urlsplit(url)
+    userinfo, _, host_port = parts.netloc.rpartition("@")
+    host = f"[{address}]" if ":" in address else address
+    netloc = (f"{userinfo}@" if userinfo else "") + host + (f":{parts.port}" if parts.port else "")
+    extensions = {"sni_hostname": parts.hostname or ""} if parts.scheme == "https" else {}
+    return urlunsplit(parts._replace(netloc=netloc)), host_port, extensions
 
 
 def _host(url: str) -> str:

@@ -429,3 +429,47 @@ def test_a_webhook_to_a_non_public_address_is_refused_without_a_request(tmp_path
         assert receiver.attempts(deliveries[0].id) == 0 and receiver.accepted == []
     finally:
         receiver.close()
+
+
+def test_a_webhook_goes_to_the_address_that_was_checked(tmp_path, monkeypatch):
+    """DNS rebinding gains nothing: the name is resolved once per attempt and the request is sent to the address
+    that passed the check (the Host header and TLS's name stay the URL's), not resolved again on connect."""
+    answers = iter(["93.184.216.34"] + ["127.0.0.1"] * 10)  # public to the check, then loopback
+    resolved: list[str] = []
+
+    async def getaddrinfo(self, host, port, *args, **kwargs):
+        resolved.append(host)
+        return [(2, 1, 6, "", (next(answers), port))]
+    monkeypatch.setattr(asyncio.base_events.BaseEventLoop, "getaddrinfo", getaddrinfo)
+    sent: list[httpx.Request] = []
+
+    def answer(request: httpx.Request) -> httpx.Response:
+        sent.append(request)
+        return httpx.Response(204)
+    config = settings(tmp_path, webhook_private_networks=False)
+    with JobStore.open(config.jobs_database_url) as store:
+        job_id = job_with_webhook(store, "https://hooks.example.com:8443/blendsplat?token=t")
+
+        async def main() -> None:
+            dispatcher = WebhookDispatcher(config, store, SECRET, transport=httpx.MockTransport(answer))
+            dispatcher.start()
+            deadline = time.monotonic() + 15
+            while store.deliveries(job_id)[0].status is not DeliveryStatus.DELIVERED:
+                assert time.monotonic() < deadline, "not delivered"
+                await asyncio.sleep(0.02)
+            await dispatcher.stop()
+        asyncio.run(main())
+    (request,) = sent
+    assert resolved == ["hooks.example.com"]
+    assert str(request.url) == "https://93.184.216.34:8443/blendsplat?token=t"
+    assert request.headers["host"] == "hooks.example.com:8443"
+    assert request.extensions["sni_hostname"] == "hooks.example.com"  # TLS verifies the name's certificate
+
+
+def test_pinned_urls_keep_port_path_and_bracket_ipv6():
+    from service.webhooks import _pinned
+
+    assert _pinned("http://user:pw@hooks.example.com/x?y=1", "2606:2800:220:1::1") == (
+        "http://user:pw@[2606:2800:220:1::1]/x?y=1", "hooks.example.com", {})
+    assert _pinned("https://h.example/", "93.184.216.34") == ("https://93.184.216.34/", "h.example",
+                                                              {"sni_hostname": "h.example"})
