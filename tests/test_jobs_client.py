@@ -286,8 +286,11 @@ def test_ctrl_c_stops_waiting_not_the_job(up, long_job, tmp_path):
     job, _ = long_job
     err = tmp_path / "wait.err"
     with open(err, "w") as stderr:
+        # SIGINT as a terminal gives it: a run started in the background by a shell without job control (nohup
+        # ... &) ignores SIGINT, and its children would inherit that
         proc = subprocess.Popen([sys.executable, "-m", "service.cli", "jobs", "wait", job["id"], *up.args()],
-                                cwd=ROOT, env=clean_env(), stdout=subprocess.PIPE, stderr=stderr, text=True)
+                                cwd=ROOT, env=clean_env(), stdout=subprocess.PIPE, stderr=stderr, text=True,
+                                preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         wait_for(lambda: f"job {job['id']}: " in err.read_text(), 60, "wait to report the job's state")
         proc.send_signal(signal.SIGINT)
