@@ -50,7 +50,6 @@ ADMIN_KEY_FILE = "admin.key"
 ADMIN_TENANT = "admin"
 WS_PROTOCOL = "blendsplat.v1"  # the WebSocket subprotocol the server answers with
 WS_KEY_PREFIX = "bearer."  # the subprotocol that carries the key: bearer.<key>
-HOUR = 3600.0
 
 
 class Unauthenticated(ServiceError):

@@ -364,7 +364,7 @@ class Engine:
         if len(self.sessions) >= self.settings.max_sessions:
             raise ResourceExhausted(f"this replica serves at most {self.settings.max_sessions} streams")
         self._check_read(principal, config.avatar_id, "avatar_id")
-        release_slot = self.access.take_stream(principal)
+        release_slot = await asyncio.to_thread(self.access.take_stream, principal)  # may ask Redis: off the loop
         try:
             entry = await self.cache.acquire(check_id(config.avatar_id))
         except BaseException:
@@ -525,7 +525,7 @@ class Engine:
         limit = self.settings.max_upload_bytes
         if declared is not None and declared > limit:
             raise InvalidArgument(f"the upload is {declared} bytes; the limit is {limit}", field="bundle")
-        self.access.count_upload(principal)
+        await asyncio.to_thread(self.access.count_upload, principal)  # may ask Redis: off the loop
         self.access.check_quota(principal, declared or 0)
         fd, staged = self.store.staging()
         try:

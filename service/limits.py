@@ -27,6 +27,7 @@ import time
 import uuid
 from collections import defaultdict, deque
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from typing import Protocol
 
 from .errors import ResourceExhausted
@@ -61,7 +62,7 @@ def _refuse_event(limit: int, what: str, retry_after: float) -> RateLimited:
 class Limits(Protocol):
     def take_stream(self, key_id: str, limit: int) -> Release:
         """Take one of the key's concurrent streams (RateLimited at ``limit``); call what is returned, once, when
-        the stream ends."""
+        the stream ends. Taking may block on the network (call it off an event loop); releasing does not."""
 
     def take_event(self, key_id: str, what: str, limit: int, window: float = HOUR) -> None:
         """Count one event (``what``: "uploads", "job submissions") for the key; RateLimited when ``limit`` were
@@ -160,6 +161,7 @@ class RedisLimits:
         self._lock = threading.Lock()
         self._leases: dict[str, str] = {}  # lease id -> its set, renewed until released
         self._warned = 0.0
+        self._giving_back = ThreadPoolExecutor(1, thread_name_prefix="limits-release")  # releases never block
         self._stop = threading.Event()
         self._renewer = threading.Thread(target=self._renew_loop, name="limits-renew", daemon=True)
         self._renewer.start()
@@ -176,15 +178,21 @@ class RedisLimits:
         with self._lock:
             self._leases[lease] = key
 
-        def release() -> None:
+        def release() -> None:  # called where streams end (the event loop): Redis is asked on another thread
             with self._lock:
                 if self._leases.pop(lease, None) is None:
                     return
             try:
-                self.redis.zrem(key, lease)
-            except self._errors as e:  # the lease expires by itself
-                self._failed(e)
+                self._giving_back.submit(self._give_back, key, lease)
+            except RuntimeError:  # closed: close() gave the leases back
+                pass
         return release
+
+    def _give_back(self, key: str, lease: str) -> None:
+        try:
+            self.redis.zrem(key, lease)
+        except self._errors as e:  # the lease expires by itself
+            self._failed(e)
 
     def take_event(self, key_id: str, what: str, limit: int, window: float = HOUR) -> None:
         key = f"{self.prefix}{what.replace(' ', '-')}:{key_id}"
@@ -227,6 +235,7 @@ class RedisLimits:
     def close(self) -> None:
         """Stop renewing and give back this process's leases."""
         self._stop.set()
+        self._giving_back.shutdown(wait=True)
         with self._lock:
             leases, self._leases = list(self._leases.items()), {}
         try:

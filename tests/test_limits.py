@@ -81,7 +81,7 @@ def test_replicas_share_one_stream_limit_through_redis(replicas):
             limits.take_stream("key1", 3)
     b.take_stream("key2", 3)()  # other keys are counted apart
     held.pop()()  # a gives one back: b may take it
-    held.append(b.take_stream("key1", 3))
+    held.append(eventually(lambda: b.take_stream("key1", 3)))
     with pytest.raises(RateLimited):
         a.take_stream("key1", 3)
     assert a.held() == 1 and b.held() == 2
@@ -104,7 +104,18 @@ def test_leases_are_renewed_while_the_stream_lasts(replicas):
     with pytest.raises(RateLimited):
         other.take_stream("key", 1)
     release()
-    other.take_stream("key", 1)
+    eventually(lambda: other.take_stream("key", 1))
+
+
+def eventually(take, seconds: float = 10):
+    """``take()`` once it stops being refused (a release reaches Redis from a background thread)."""
+    deadline = time.monotonic() + seconds
+    while True:
+        try:
+            return take()
+        except RateLimited:
+            assert time.monotonic() < deadline, "still refused"
+            time.sleep(0.02)
 
 
 def test_replicas_share_hourly_windows_and_say_when_to_come_back(replicas):
@@ -138,6 +149,38 @@ def test_an_unreachable_redis_fails_open_and_is_counted():
         limits.close()
 
 
+def test_a_redis_that_accepts_but_never_answers_fails_open_after_the_timeout():
+    silent = socket.create_server(("127.0.0.1", 0))  # accepts connections (the backlog), never answers
+    failures = []
+    limits = RedisLimits(f"redis://127.0.0.1:{silent.getsockname()[1]}/0", timeout=0.2,
+                         on_failure=lambda: failures.append(1))
+    try:
+        assert limits.take_stream("key", 1) is no_release
+        limits.take_event("key", "uploads", 1)
+        assert len(failures) == 2
+    finally:
+        limits.close()
+        silent.close()
+
+
+def test_releasing_a_lease_hands_redis_the_work_and_close_gives_back_the_rest(replicas, redis_url):
+    import redis
+
+    limits = replicas()
+    first, second = limits.take_stream("key", 5), limits.take_stream("key", 5)
+    sets = redis.Redis.from_url(redis_url)
+    key = f"{limits.prefix}streams:key"
+    assert sets.zcard(key) == 2
+    first()
+    deadline = time.monotonic() + 10
+    while sets.zcard(key) != 1:
+        assert time.monotonic() < deadline, "the released lease stayed in Redis"
+        time.sleep(0.02)
+    limits.close()  # a stopping replica gives back what it still holds
+    assert sets.zcard(key) == 0
+    second()  # after close: nothing left to do, and no error
+
+
 # ------------------------------------------------------------------------------------------------- end to end
 def test_two_servers_enforce_one_stream_limit_per_key(tmp_path, redis_url):
     """Two real service processes' servers (one job database for the keys, one Redis): a key holding its one
@@ -160,8 +203,15 @@ def test_two_servers_enforce_one_stream_limit_per_key(tmp_path, redis_url):
             assert refused.value.code() == grpc.StatusCode.RESOURCE_EXHAUSTED
             held.put(None)
             list(stream)  # ended on the first replica: its lease is given back
-            again = pb_grpc.RenderServiceStub(two).RenderStream(iter([opened]), metadata=md)
-            assert next(again).HasField("header")
+            deadline = time.monotonic() + 10
+            while True:
+                again = pb_grpc.RenderServiceStub(two).RenderStream(iter([opened]), metadata=md)
+                try:
+                    assert next(again).HasField("header")
+                    break
+                except grpc.RpcError as e:  # the release reaches Redis a moment after the stream ends
+                    assert e.code() == grpc.StatusCode.RESOURCE_EXHAUSTED and time.monotonic() < deadline
+                    time.sleep(0.05)
             again.cancel()
         auth = {"Authorization": f"Bearer {key}"}
         r = httpx.post(first.http_url + "/v1/uploads", files={"file": ("v.tgz", b"x")}, headers=auth, timeout=30)
