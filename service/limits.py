@@ -14,6 +14,7 @@ Two backends with one interface (:class:`Limits`), chosen by settings (:func:`li
   - events are members of ``<prefix><what>:<key id>`` scored by their time; older than the window they no
     longer count, and a refusal says when the oldest one leaves the window (``Retry-After``).
 
+  One Redis server (not Redis Cluster: a renewal touches several keys at once).
   When Redis cannot be reached the limits fail open (the stream or upload goes ahead, with a warning in the log at
   most once a minute and ``blendsplat_limit_checks_failed_total`` counting): a limit store outage must not take
   live sessions down with it. Readiness does not depend on Redis for the same reason.
