@@ -216,9 +216,12 @@ class Access:
                                     f"pass its quota of {quota} (delete avatars or uploads first)",
                                     field="authorization")
 
-    def count_upload(self, principal: Principal) -> None:
+    def admit_upload(self, principal: Principal, incoming: int) -> None:
+        """Count an upload against the key's uploads per hour, then check the tenant's quota with ``incoming``
+        more bytes (RateLimited / ResourceExhausted). Blocking: the count may ask Redis, the quota reads the stores."""
         if principal.key_id is not None and not principal.admin:
             self.limits.take_event(principal.key_id, "uploads", self.settings.key_uploads_per_hour)
+        self.check_quota(principal, incoming)
 
     def count_job(self, principal: Principal) -> None:
         if principal.key_id is not None and not principal.admin:

@@ -525,8 +525,7 @@ class Engine:
         limit = self.settings.max_upload_bytes
         if declared is not None and declared > limit:
             raise InvalidArgument(f"the upload is {declared} bytes; the limit is {limit}", field="bundle")
-        await asyncio.to_thread(self.access.count_upload, principal)  # may ask Redis: off the loop
-        self.access.check_quota(principal, declared or 0)
+        await asyncio.to_thread(self.access.admit_upload, principal, declared or 0)
         fd, staged = self.store.staging()
         try:
             size = 0

@@ -41,7 +41,7 @@ from swagger_ui_bundle import swagger_ui_path
 from blendsplat.v1 import render_pb2 as pb
 from render_core.errors import BlendsplatError
 
-from .adapters import MAX_ADAPTER_BYTES
+from .adapters import MAX_ADAPTER_BYTES, MAX_MANIFEST_BYTES
 from .auth import Access, Unauthenticated
 from .engine import AVATAR_ID_PATTERN, Engine
 from .errors import InvalidArgument, ServiceError, Unavailable, http_status, to_status
@@ -418,7 +418,7 @@ async def stream(ws: WebSocket) -> None:
 adapters = APIRouter(prefix="/v1/adapters", tags=["adapters"])
 AdapterId = Annotated[str, PathParam(pattern=AVATAR_ID_PATTERN.pattern, max_length=128,
                                      description="an adapter id (the same rule as avatar ids)")]
-_ADAPTER_UPLOAD = (16 << 20) + (2 << 20)  # the model's limit (service/adapters.py) plus the manifest and framing
+_ADAPTER_UPLOAD = MAX_ADAPTER_BYTES + MAX_MANIFEST_BYTES + (1 << 20)  # the two parts' limits, plus framing
 
 
 class AdapterSource(BaseModel):

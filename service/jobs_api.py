@@ -625,10 +625,9 @@ async def create_upload(request: Request, response: Response, principal: Caller(
     try:
         if declared.isascii() and declared.isdigit() and int(declared) > limit + _MULTIPART_SLACK:
             raise UploadTooLarge(f"the upload is larger than {limit} bytes", field="file")
-        if training.access is not None:  # off the loop: the count may ask Redis, the quota reads the stores
+        if training.access is not None:
             incoming = int(declared) if declared.isascii() and declared.isdigit() else 0
-            await asyncio.to_thread(training.access.count_upload, principal)
-            await asyncio.to_thread(training.access.check_quota, principal, incoming)
+            await asyncio.to_thread(training.access.admit_upload, principal, incoming)
         form = _FilePart(request)
         await form.start()
         upload = await training.uploads.receive(form.chunks(), max_bytes=limit, filename=form.filename,

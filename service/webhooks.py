@@ -217,14 +217,11 @@ class WebhookDispatcher:
                    "webhook-timestamp": str(timestamp),
                    "webhook-signature": sign(self.secret, delivery.id, timestamp, body)}
         status: int | None = None
-        url, extensions = delivery.url, {}
+        url, extensions, error = delivery.url, {}, None
         if not s.webhook_private_networks:
             address, error = await _public_address(delivery.url)
             if address is not None:
-                url, host, extensions = _pinned(delivery.url, address)
-                headers["host"] = host
-        else:
-            error = None
+                url, headers["host"], extensions = _pinned(delivery.url, address)
         if error is None:
             try:
                 async with client.stream("POST", url, content=body, headers=headers,
