@@ -509,8 +509,11 @@ def skin(avatar: Avatar, blended: Gaussians, frame: Frame, rotate_sh: bool = Fal
 
     # Mouth interior: rigid with its group's joint.
     mouth = avatar.mouth
-    joint_ids = torch.tensor([avatar.joint_index(name) for name in avatar.mouth_joint_names], device=device)
-    am = a[:, joint_ids[avatar.mouth_group.to(device)]]  # [B, M, 3, 4]
+    # Group 0 follows the first mouth joint, group 1 the second (no index tensor built on the host: a CUDA graph
+    # can hold this).
+    upper, lower = (avatar.joint_index(name) for name in avatar.mouth_joint_names)
+    lower_group = avatar.mouth_group.to(device).eq(1)[None, :, None, None]
+    am = torch.where(lower_group, a[:, lower, None], a[:, upper, None])  # [B, M, 3, 4]
     m_rot = orthogonalize(am[..., :3])
     m_x = mouth.means.to(device=device, dtype=dtype)
     m_means = (am[..., :3] @ m_x[None, :, :, None]).squeeze(-1) + am[..., 3]

@@ -112,11 +112,14 @@ def test_avatar_renderer_on_the_gpu_matches_the_reference(avatar):
     frames = random_frames(avatar, 3, torch.Generator().manual_seed(5))
     cams = orbit([0.0, 20.0, -35.0], [0.0, 10.0, -5.0], width=128, height=128)
     bg = torch.tensor([0.0, 0.2, 0.4])
-    renderer = AvatarRenderer(avatar, "cuda", precision="fp32")
-    out = renderer.render(frames, cams, bg)
-    assert out.rgb.is_cuda and set(out.timings) == {"blend", "lbs", "shade", "raster"}
-    assert all(v >= 0 for v in out.timings.values())
-    assert_same_image(_cpu(out), AvatarRenderer(avatar, "reference").render(frames, cams, bg))
+    want = AvatarRenderer(avatar, "reference").render(frames, cams, bg)
+    for fuse, stages in (("off", {"blend", "lbs", "shade", "raster"}), ("graph", {"deform", "raster"})):
+        renderer = AvatarRenderer(avatar, "cuda", precision="fp32", fuse=fuse)
+        out = renderer.render(frames, cams, bg)
+        assert renderer.fuse == fuse, renderer.fuse_error
+        assert out.rgb.is_cuda and set(out.timings) == stages
+        assert all(v >= 0 for v in out.timings.values())
+        assert_same_image(_cpu(out), want)
 
 
 @pytest.mark.cuda
@@ -202,10 +205,34 @@ def test_bench_reports_on_the_gpu():
                           reference_frames=0)
     json.dumps(report)
     assert report["backend"] == "cuda" and report["device"] == torch.cuda.get_device_name()
-    assert report["aggregate_fps"] > 0 and {"blend", "lbs", "shade", "raster", "total"} == set(report["ms"])
+    assert report["fuse"] == "graph" and "fuse_error" not in report, report.get("fuse_error")
+    assert report["aggregate_fps"] > 0 and {"deform", "raster", "total"} == set(report["ms"])
+    eager = bench_render("cuda", gaussians=4000, blendshapes=10, size=128, streams=4, frames=3, warmup=1,
+                         reference_frames=0, fuse="off", layout="sparse")
+    assert {"blend", "lbs", "shade", "raster", "total"} == set(eager["ms"]) and eager["blend"]["layout"] == "sparse"
     step = bench_raster_backward(gaussians=4000, size=128, frames=3, reference_frames=1, device="cuda")
     json.dumps(step)
     assert step["cuda"]["forward_ms"] > 0 and step["cuda"]["backward_ms"] > 0
+
+
+@pytest.mark.cuda
+@gpu
+@pytest.mark.parametrize("fuse", ["graph", "compile"])
+def test_fused_frames_equal_the_eager_pipeline_for_each_batch_size(avatar, fuse):
+    """One CUDA graph (over torch.compile's kernels or not) per batch size renders what the eager stage-by-stage
+    pipeline renders, frame after frame (the static buffers are refilled, never stale); the sparse layout too."""
+    eager = AvatarRenderer(avatar, "cuda", fuse="off", layout="sparse")
+    fused = AvatarRenderer(avatar, "cuda", fuse=fuse)
+    g = torch.Generator().manual_seed(4)
+    for b in (1, 3, 1):
+        cams = framed_camera(avatar, 96).expand(b)
+        for _ in range(2):
+            frame = random_frames(avatar, b, g)
+            want, got = eager.render(frame, cams), fused.render(frame, cams)
+            assert fused.fuse == fuse, fused.fuse_error
+            assert set(got.timings) == {"deform", "raster"}
+            assert psnr(got.rgb, want.rgb) >= 60, psnr(got.rgb, want.rgb)
+    assert sorted(fused._graphs) == [1, 3]
 
 
 # ------------------------------------------------------------------------- everywhere: the device-resident avatar
@@ -215,7 +242,7 @@ def test_device_avatar_storage_against_the_fp32_pipeline(avatar, precision, db):
     frames = random_frames(avatar, 2, torch.Generator().manual_seed(6))
     cams = orbit([0.0, 25.0], width=64, height=64)
     dev = DeviceAvatar(avatar, "cpu", precision)
-    assert dev.deltas.dtype == {"fp32": torch.float32, "fp16": torch.float16, "bf16": torch.bfloat16}[precision]
+    assert dev.matrix.dtype == {"fp32": torch.float32, "fp16": torch.float16, "bf16": torch.bfloat16}[precision]
     got = skin(dev.avatar, dev.blend(frames.expression), frames)  # as the cuda renderer runs them
     want = deform(avatar.to(torch.float32), frames)
     if precision == "fp32":
@@ -229,6 +256,43 @@ def test_device_avatar_storage_against_the_fp32_pipeline(avatar, precision, db):
 def test_device_avatar_rejects_unknown_precision(avatar):
     with pytest.raises(ValueError, match="bf16"):
         DeviceAvatar(avatar, "cpu", "int8")
+    with pytest.raises(ValueError, match="layout"):
+        DeviceAvatar(avatar, "cpu", "fp16", "csr")
+
+
+def test_the_fused_stage_builds_no_tensor_from_host_data(avatar, monkeypatch):
+    """What the CUDA graph captures (blend, skin, shade) never turns host data into a device tensor: a CUDA graph
+    cannot capture that copy (the mouth's joint lookup once did, and every capture fell back to eager)."""
+    renderer = AvatarRenderer(avatar, "reference")
+    renderer.device_avatar = DeviceAvatar(avatar, "cpu", "fp16")
+    frames = random_frames(avatar, 2, torch.Generator().manual_seed(3))
+    cams = framed_camera(avatar, 64).expand(2)
+    inputs = [frames.expression, frames.joint_rotations, torch.zeros(2, 2), cams.R, cams.t]
+    want = renderer.deform_shade(*inputs)
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("a tensor was built from host data inside the captured stage")
+
+    for name in ("tensor", "as_tensor", "from_numpy"):
+        monkeypatch.setattr(torch, name, refuse)
+    got = renderer.deform_shade(*inputs)
+    for a, b in zip(got, want, strict=True):
+        assert torch.equal(a, b)
+
+
+@pytest.mark.parametrize("precision", ["fp32", "fp16", "bf16"])
+def test_dense_and_sparse_layouts_blend_alike(precision):
+    """The dense [K, N x D] matrix (one product for B frames) and the stored pairs give the same Eq. 1, on a
+    sparse avatar whose zeros the dense layout stores."""
+    avatar = synth_avatar(gaussians=600, blendshapes=9, seed=3, local=True)
+    dense, sparse = DeviceAvatar(avatar, "cpu", precision, "dense"), DeviceAvatar(avatar, "cpu", precision, "sparse")
+    assert dense.nbytes == 9 * 600 * (11 + 3 * avatar.neutral.sh.shape[1]) * dense.matrix.element_size()
+    assert sparse.nbytes < dense.nbytes
+    psi = torch.rand(4, 9, generator=torch.Generator().manual_seed(2))
+    a, b = dense.blend(psi), sparse.blend(psi)
+    tol = {"fp32": 1e-5, "fp16": 2e-3, "bf16": 2e-2}[precision]
+    for key, t in a.tensors().items():
+        torch.testing.assert_close(t, getattr(b, key), atol=tol, rtol=tol, msg=key)
 
 
 # ------------------------------------------------------------------------------- without CUDA: clear errors

@@ -42,7 +42,7 @@ def test_cuda_nbytes_counts_the_device_avatar_emulated(monkeypatch, avatar, prec
     import gsplat_cpu
 
     gsplat_cpu.emulate_cuda_backend(monkeypatch)  # the cuda path, its device the CPU
-    renderer = AvatarRenderer(avatar, "cuda", precision=precision)
+    renderer = AvatarRenderer(avatar, "cuda", precision=precision, layout="sparse")
     dev = renderer.device_avatar
     sparse = avatar.sparse_deltas()
     size = {"fp32": 4, "fp16": 2, "bf16": 2}[precision]
@@ -54,7 +54,14 @@ def test_cuda_nbytes_counts_the_device_avatar_emulated(monkeypatch, avatar, prec
     # An fp16 avatar's pose correctives and eyelid offsets get float32 copies on the device too.
     half = avatar.with_precision("fp16")
     extra = sum(t.numel() for t in (half.pose_correctives, half.eyelid_offsets) if t is not None) * 4
-    assert AvatarRenderer(half, "cuda", precision=precision).nbytes == packed + extra
+    assert AvatarRenderer(half, "cuda", precision=precision, layout="sparse").nbytes == packed + extra
+    # The default dense layout: one [K, N x D] matrix in the storage precision.
+    dense = AvatarRenderer(avatar, "cuda", precision=precision).device_avatar
+    assert dense.layout == "dense" and dense.nbytes == dense.matrix.numel() * size
+    # ... plus the two empty pair tables (N + 1 row pointers each) the device avatar keeps in place of the pairs.
+    empty_tables = 2 * (avatar.num_gaussians + 1) * 4
+    total = AvatarRenderer(avatar, "cuda", precision=precision).nbytes
+    assert dense.nbytes <= total <= dense.nbytes + empty_tables + 64
 
 
 @pytest.mark.cuda
@@ -81,7 +88,7 @@ def test_device_avatar_blends_only_the_stored_pairs_cpu_emulation(precision):
     avatar = synth_avatar(gaussians=500, blendshapes=7, seed=9, local=True)  # compact: most pairs are zero
     dense = avatar.dense_deltas()
     geometry = torch.cat([dense.means, dense.quats, dense.log_scales, dense.opacity_logits[..., None]], -1)
-    dev = DeviceAvatar(avatar, "cpu", precision)
+    dev = DeviceAvatar(avatar, "cpu", precision, "sparse")
     assert dev.deltas.geometry.count == int(geometry.ne(0).any(-1).sum()) < 500 * 7
     assert dev.deltas.color.count == int(dense.sh.flatten(2).ne(0).any(-1).sum())
     assert dev.nbytes < sum(t.numel() for t in dense.tensors().values()) * STORAGE_DTYPES[precision].itemsize

@@ -65,10 +65,12 @@ def random_frames(avatar: Avatar, batch: int, g: torch.Generator) -> Frame:
     return Frame.from_params(avatar, expression=expression, joints=joints, eyelids=eyelids)
 
 
+STAGES = ("blend", "lbs", "shade", "deform", "raster")  # what a renderer's timings may hold, in order
+
+
 def _time_frames(renderer: AvatarRenderer, cams: Cameras, frames: int, warmup: int, g: torch.Generator) -> dict:
-    stages: dict[str, list[float]] = {"blend": [], "lbs": [], "raster": [], "total": []}
-    if renderer.backend == "cuda":
-        stages["shade"] = []
+    stages: dict[str, list[float]] = {}
+    totals: list[float] = []
     covs: list[float] = []
     timings: dict = {}
     for i in range(warmup + frames):
@@ -79,12 +81,39 @@ def _time_frames(renderer: AvatarRenderer, cams: Cameras, frames: int, warmup: i
         if i < warmup:
             continue
         timings = out.timings or {}
-        for key in stages.keys() - {"total"}:
-            stages[key].append(float(timings.get(key, 0.0)))
-        stages["total"].append(total)
+        for key in STAGES:
+            if key in timings:
+                stages.setdefault(key, []).append(float(timings[key]))
+        totals.append(total)
         covs.append(coverage(out.alpha))
+    stages["total"] = totals
     return {"ms": {k: round(statistics.median(v), 3) for k, v in stages.items()},
             "coverage": round(statistics.mean(covs), 4), "last_timings": timings}
+
+
+def profile_frames(renderer: AvatarRenderer, cams: Cameras, g: torch.Generator, path: str, frames: int = 20,
+                   top: int = 12) -> dict:
+    """Profile ``frames`` renders with torch.profiler (CPU, and CUDA where the renderer runs there); write the
+    Chrome trace to ``path`` and return the ``top`` operators by self time on the device (CPU otherwise)."""
+    from torch.profiler import ProfilerActivity, profile
+
+    on_gpu = renderer.device_avatar is not None
+    activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if on_gpu else [])
+    batches = [random_frames(renderer.avatar, len(cams), g) for _ in range(frames)]
+    with profile(activities=activities) as prof:
+        t0 = time.perf_counter()
+        for frame in batches:
+            renderer.render(frame, cams)
+        if on_gpu:
+            torch.cuda.synchronize()
+        wall = (time.perf_counter() - t0) * 1e3 / frames
+    prof.export_chrome_trace(path)
+    key = "self_device_time_total" if on_gpu else "self_cpu_time_total"
+    rows = sorted(prof.key_averages(), key=lambda e: getattr(e, key, 0.0), reverse=True)[:top]
+    per_frame = 1e3 * frames
+    return {"trace": path, "frames": frames, "ms_per_frame_profiled": round(wall, 3), "sorted_by": key,
+            "top": [{"name": e.key, "calls": e.count, "self_ms_per_frame": round(getattr(e, key, 0.0) / per_frame, 4),
+                     "cpu_ms_per_frame": round(e.self_cpu_time_total / per_frame, 4)} for e in rows]}
 
 
 def _check_counts(minimum: int, **counts: int) -> None:
@@ -108,8 +137,14 @@ def bench_render(
     avatar: Avatar | None = None,
     reference_frames: int = 2,
     threads: int = 0,
+    trace: str | None = None,
+    layout: str = "dense",
+    fuse: str = "graph",
 ) -> dict:
     """Time ``frames`` frames (after ``warmup``) of ``streams`` batched streams; returns the JSON report.
+
+    ``trace``: also profile a few more frames with torch.profiler, write its Chrome trace there and add the
+    operators that took the most time (``profile``) to the report.
 
     ``precision`` is the blendshape storage: the synthetic avatar's ("fp32" or "fp16"), and for the cuda backend
     the storage on the GPU ("bf16" too, from an fp16 avatar)."""
@@ -123,7 +158,8 @@ def bench_render(
         stored = "fp16" if precision == "bf16" else precision
         avatar = synth_avatar(gaussians, blendshapes, seed=seed, sh_degree=sh_degree).with_precision(stored)
     # bf16 is a storage on the GPU only (from the fp16 avatar); otherwise every backend stores the avatar's own.
-    renderer = AvatarRenderer(avatar, backend, threads=threads, precision="bf16" if precision == "bf16" else None)
+    renderer = AvatarRenderer(avatar, backend, threads=threads, precision="bf16" if precision == "bf16" else None,
+                              layout=layout, fuse=fuse)
     cams = framed_camera(avatar, size).expand(streams)
     g = torch.Generator().manual_seed(seed + 1)
     timed = _time_frames(renderer, cams, frames, warmup, g)
@@ -168,7 +204,12 @@ def bench_render(
     if dev is not None:
         report["device"] = gsplat_backend.device_name()
         report["machine"].update(gpu=report["device"], cuda=torch.version.cuda, gsplat=_gsplat_version())
-        report["blend"] = {"bytes": dev.nbytes}  # the sparse blendshapes on the device
+        report["blend"] = {"bytes": dev.nbytes, "layout": dev.layout}  # the blendshapes on the device
+        report["fuse"] = renderer.fuse
+        if renderer.fuse_error:
+            report["fuse_error"] = renderer.fuse_error
+    if trace is not None:
+        report["profile"] = profile_frames(renderer, cams, g, trace)
     if renderer.backend != "reference" and reference_frames > 0:
         ref = _time_frames(AvatarRenderer(avatar, "reference"), cams, reference_frames, 1, g)
         ref_fps = 1000.0 / ref["ms"]["total"]

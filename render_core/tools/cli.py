@@ -152,14 +152,16 @@ def cmd_bench_render(args: argparse.Namespace) -> int:
     report = bench_render(backend=args.backend, gaussians=args.gaussians, blendshapes=args.blendshapes,
                           size=args.size, streams=args.streams, frames=args.frames, warmup=args.warmup,
                           sh_degree=args.sh_degree, precision=args.precision, seed=args.seed, avatar=avatar,
-                          reference_frames=args.reference_frames, threads=args.threads)
+                          reference_frames=args.reference_frames, threads=args.threads,
+                          trace=None if args.trace is None else str(args.trace), layout=args.layout,
+                          fuse=args.fuse)
     if args.json:
         _emit(report)
     else:
         ms = report["ms"]
         print(f"{report['backend']}: {report['gaussians']} gaussians, K={report['blendshapes']}, "
               f"{report['size']}px, {report['streams']} stream(s): {report['fps']:.2f} fps per stream "
-              f"(blend {ms['blend']} ms, lbs {ms['lbs']} ms, raster {ms['raster']} ms, total {ms['total']} ms), "
+              f"({', '.join(f'{k} {v} ms' for k, v in ms.items())}), "
               f"coverage {report['coverage']:.2f}")
     return 0
 
@@ -632,6 +634,12 @@ def build_parser() -> argparse.ArgumentParser:
                         "backend's GPU storage only)")
     b.add_argument("--seed", type=int, default=0)
     b.add_argument("--bundle", type=Path, default=None, help="benchmark this bundle instead of a synthetic one")
+    b.add_argument("--layout", choices=("dense", "sparse"), default="dense",
+                   help="cuda: the blendshapes on the GPU as one dense matrix or the stored pairs only")
+    b.add_argument("--fuse", choices=("off", "graph", "compile"), default="graph",
+                   help="cuda: blend + skinning + shading as one CUDA graph (compile: over torch.compile's kernels)")
+    b.add_argument("--trace", type=Path, default=None,
+                   help="also profile 20 frames with torch.profiler: Chrome trace here, top operators in the report")
     b.add_argument("--json", action="store_true")
     b.set_defaults(fn=cmd_bench_render)
     b = bsub.add_parser("raster-backward", help="forward + backward of the differentiable rasterizer (training's "
