@@ -100,22 +100,53 @@ def _joints(avatar: Avatar, value: Any) -> dict[str, torch.Tensor]:
     return out
 
 
-def _camera(avatar: Avatar, value: Any, width: int, height: int) -> Cameras:
+def preset_camera(avatar: Avatar, name: str, width: int, height: int, field: str = "camera") -> Cameras:
+    """A named view (:data:`PRESETS`) at the avatar's default distance and focal length; FrameError naming
+    ``field`` for an unknown name."""
+    if name not in PRESETS:
+        raise FrameError(f"unknown preset {name[:64]!r}; presets: {', '.join(PRESETS)}", field=field)
+    yaw, pitch = PRESETS[name]
+    return orbit_camera(avatar, width, height, yaw, pitch)
+
+
+def orbit_camera(avatar: Avatar, width: int, height: int, yaw: float = 0.0, pitch: float = 0.0,
+                 distance: float | None = None) -> Cameras:
+    """An orbit around the avatar: yaw and pitch in degrees, ``distance`` in metres (default: the default
+    camera's), the default camera's focal length."""
     base = default_camera(avatar, width, height)
-    distance = float(base.centres[0].norm())
-    focal = float(base.K[0, 0, 0])
+    distance = float(base.centres[0].norm()) if distance is None else distance
+    return orbit(yaw, pitch, width=width, height=height, distance=distance, focal=float(base.K[0, 0, 0]))
+
+
+def calibrated_camera(K: Any, R: Any, t: Any, calibrated: tuple[int, int], width: int, height: int,
+                      field: str = "camera", parts: dict[str, str] | None = None) -> Cameras:
+    """An OpenCV calibration (K 3x3 in pixels of the ``calibrated`` (width, height), R 3x3, t 3) checked as every
+    user camera is (:func:`render_core.camera.calibration_problem`) and rescaled to ``width`` x ``height``.
+    Errors name ``field``.<part>, the part renamed by ``parts`` (e.g. the wire's lower-case ``k``)."""
+    parts = parts or {}
+    cw, ch = calibrated
+    try:
+        return Cameras.from_dict({"width": cw, "height": ch, "K": K, "R": R, "t": t}).resized(width, height)
+    except FrameError as e:
+        part = (e.field or "").removeprefix("camera").removeprefix(".")
+        raise FrameError(e.detail, field=f"{field}.{parts.get(part, part)}" if part else field) from None
+
+
+def parse_camera(avatar: Avatar, value: Any, width: int, height: int) -> Cameras:
+    """A driving file's ``camera`` value (a preset name, an orbit object or an OpenCV calibration) at the output
+    size. Raises FrameError naming ``camera`` or its part."""
     if isinstance(value, str):
-        if value not in PRESETS:
-            raise FrameError(f"unknown preset {value!r}; presets: {', '.join(PRESETS)}", field="camera")
-        yaw, pitch = PRESETS[value]
-        return orbit(yaw, pitch, width=width, height=height, distance=distance, focal=focal)
+        return preset_camera(avatar, value, width, height)
     if isinstance(value, dict) and set(value) <= {"yaw", "pitch", "distance"}:
         nums = {k: _numbers([v], f"camera.{k}")[0] for k, v in value.items()}
-        return orbit(nums.get("yaw", 0.0), nums.get("pitch", 0.0), width=width, height=height,
-                     distance=nums.get("distance", distance), focal=focal)
+        return orbit_camera(avatar, width, height, nums.get("yaw", 0.0), nums.get("pitch", 0.0),
+                            nums.get("distance"))
     if isinstance(value, dict):
-        cam = Cameras.from_dict({"width": width, "height": height, **value})
-        return cam.resized(width, height)
+        extra = set(value) - {"K", "R", "t", "width", "height"}
+        if extra:
+            raise FrameError(f"unknown key(s) {sorted(extra)}; expected {{K, R, t, width, height}}", field="camera")
+        return calibrated_camera(value.get("K"), value.get("R"), value.get("t"),
+                                 (value.get("width", width), value.get("height", height)), width, height)
     raise FrameError(f"expected a preset ({', '.join(PRESETS)}), an orbit {{yaw, pitch, distance}} or "
                      "{K, R, t, width, height}", field="camera")
 
@@ -136,7 +167,7 @@ def parse_frame(avatar: Avatar, obj: Any) -> Frame:
 def parse_line(avatar: Avatar, obj: Any, width: int, height: int) -> DriveFrame:
     """One driving-file object -> a frame of the avatar and its camera. Raises FrameError."""
     frame = parse_frame(avatar, obj)
-    camera = _camera(avatar, obj["camera"], width, height) if "camera" in obj else default_camera(
+    camera = parse_camera(avatar, obj["camera"], width, height) if "camera" in obj else default_camera(
         avatar, width, height)
     return DriveFrame(frame, camera)
 

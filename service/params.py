@@ -24,8 +24,7 @@ from blendsplat.v1 import render_pb2 as pb
 from render_core.avatar import Avatar
 from render_core.camera import Cameras, calibration_problem
 from render_core.deform import Frame
-from render_core.drive import parse_frame, parse_line
-from render_core.errors import FrameError
+from render_core.drive import calibrated_camera, default_camera, orbit_camera, preset_camera
 from render_core.rotation import axis_angle_to_matrix, rot6d_to_matrix
 
 from .errors import InvalidArgument, ResourceExhausted, some
@@ -83,11 +82,25 @@ def _finite(value: float, field: str) -> float:
     return value
 
 
-def _camera_value(cam: pb.Camera) -> object | None:
-    kind = cam.WhichOneof("kind")
+# The wire's names of a calibration's parts (OpenCVCamera's fields).
+_OPENCV_PARTS = {"K": "k", "R": "r", "t": "t", "width": "width"}
+
+
+def camera(avatar: Avatar, cam: pb.Camera | None, out: Output, default: Cameras | None = None) -> Cameras:
+    """The camera a message asks for, else ``default``, else the avatar's default camera at the output size.
+
+    Whatever the message gave (a preset, an orbit, an OpenCV calibration rescaled to the output size), the camera
+    that comes out is checked as render_core checks every user camera
+    (:func:`render_core.camera.calibration_problem`: finite, K = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] with
+    positive focals, R a rotation), errors naming the wire's field (``camera.opencv.k``, ``camera.orbit.yaw_deg``)
+    as each part is read."""
+    kind = cam.WhichOneof("kind") if cam is not None else None
+    if kind is None and default is not None:
+        return default
+    w, h = out.width, out.height
     if kind == "preset":
-        return cam.preset
-    if kind == "orbit":
+        cameras = preset_camera(avatar, cam.preset, w, h, field="camera.preset")
+    elif kind == "orbit":
         o = cam.orbit
         yaw = _finite(o.yaw_deg, "camera.orbit.yaw_deg")
         pitch = _finite(o.pitch_deg, "camera.orbit.pitch_deg")
@@ -98,8 +111,8 @@ def _camera_value(cam: pb.Camera) -> object | None:
         if distance < 0:
             raise InvalidArgument(f"must be positive (0: the avatar's default), got {distance}",
                                   field="camera.orbit.distance")
-        return {"yaw": yaw, "pitch": pitch} | ({"distance": distance} if distance else {})
-    if kind == "opencv":
+        cameras = orbit_camera(avatar, w, h, yaw, pitch, distance or None)
+    elif kind == "opencv":
         c = cam.opencv
         for field, values, n in (("k", c.k, 9), ("r", c.r, 9), ("t", c.t, 3)):
             if len(values) != n:
@@ -107,39 +120,16 @@ def _camera_value(cam: pb.Camera) -> object | None:
         if not c.width or not c.height:
             raise InvalidArgument("the calibrated size is needed to rescale K", field="camera.opencv.width")
         k, r = list(c.k), list(c.r)
-        return {"K": [k[0:3], k[3:6], k[6:9]], "R": [r[0:3], r[3:6], r[6:9]], "t": list(c.t),
-                "width": c.width, "height": c.height}
-    return None
-
-
-# render_core's names of a camera's parts -> the wire's (OpenCVCamera's fields).
-_OPENCV_FIELDS = {"camera.K": "camera.opencv.k", "camera.R": "camera.opencv.r", "camera.t": "camera.opencv.t",
-                  "camera.width": "camera.opencv.width", "camera": "camera.opencv"}
-
-
-def camera(avatar: Avatar, cam: pb.Camera | None, out: Output, default: Cameras | None = None) -> Cameras:
-    """The camera a message asks for, else ``default``, else the avatar's default camera at the output size.
-
-    Whatever the message gave (a preset, an orbit, an OpenCV calibration rescaled to the output size), the camera
-    that comes out is checked as render_core checks every user camera
-    (:func:`render_core.camera.calibration_problem`: finite, K = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] with
-    positive focals, R a rotation), errors naming the wire's field (``camera.opencv.k``, ``camera.orbit``)."""
-    value = _camera_value(cam) if cam is not None else None
-    if value is None and default is not None:
-        return default
-    kind = cam.WhichOneof("kind") if value is not None else None
-    try:
-        cameras = parse_line(avatar, {} if value is None else {"camera": value}, out.width, out.height).camera
-    except FrameError as e:
-        if kind != "opencv":
-            raise
-        raise FrameError(e.detail, field=_OPENCV_FIELDS.get(e.field or "camera", e.field)) from None
+        cameras = calibrated_camera([k[0:3], k[3:6], k[6:9]], [r[0:3], r[3:6], r[6:9]], list(c.t),
+                                    (c.width, c.height), w, h, field="camera.opencv", parts=_OPENCV_PARTS)
+    else:
+        cameras = default_camera(avatar, w, h)
     problem = calibration_problem(cameras.K[0].double(), cameras.R[0].double(), cameras.t[0].double())
     if problem is not None:  # e.g. a K whose focal vanished in the rescale, a degenerate orbit
         part, message = problem
         if kind == "opencv":
-            raise InvalidArgument(f"{message} (at the output size {out.width}x{out.height})",
-                                  field=_OPENCV_FIELDS[f"camera.{part}"])
+            raise InvalidArgument(f"{message} (at the output size {w}x{h})",
+                                  field=f"camera.opencv.{_OPENCV_PARTS[part]}")
         raise InvalidArgument(f"gives no usable camera ({part}: {message})",
                               field=f"camera.{kind}" if kind else "camera")
     return cameras
@@ -156,9 +146,9 @@ def background(color: pb.Color | None, default: torch.Tensor | None = None, fiel
     return torch.tensor(values)
 
 
-def _rotation(avatar: Avatar, name: str, rot: pb.Rotation) -> list[float]:
-    """One joint's rotation values: a joint of the avatar, 3 (axis-angle) or 6 (6D) finite values. Whether they
-    give a rotation matrix is checked with the frame (:func:`_not_a_rotation` names the joint when they do not)."""
+def _rotation(avatar: Avatar, name: str, rot: pb.Rotation) -> torch.Tensor:
+    """One joint's [3, 3] float32 rotation matrix from 3 (axis-angle) or 6 (6D) finite values, checked as the frame
+    checks every joint (orthonormal to 1e-3, determinant +1); errors name ``joints.<name>``."""
     if name not in avatar.joint_names:
         raise InvalidArgument(f"unknown joint {some([name])}; this avatar's joints: {some(avatar.joint_names, 10)}",
                               field="joints")
@@ -167,30 +157,20 @@ def _rotation(avatar: Avatar, name: str, rot: pb.Rotation) -> list[float]:
         raise InvalidArgument(f"expected axis-angle (3 values) or 6D (6 values), got {len(values)}", field=field)
     if not all(math.isfinite(v) for v in values):
         raise InvalidArgument("values must be finite (no NaN or Infinity)", field=field)
-    return values
+    v = torch.tensor(values, dtype=torch.float32)
+    m = axis_angle_to_matrix(v) if len(values) == 3 else rot6d_to_matrix(v)
+    md = m.double()
+    ok = bool(torch.isfinite(md).all())
+    ok = ok and float((md @ md.T - torch.eye(3, dtype=torch.float64)).abs().max()) <= 1e-3
+    if not (ok and float(torch.linalg.det(md)) > 1 - 1e-3):
+        raise InvalidArgument("not a rotation: 6D needs two non-zero, non-parallel 3-vectors (the first two rows of "
+                              "the matrix); axis-angle an angle in radians of moderate size", field=field)
+    return m
 
 
-def _not_a_rotation(joints: dict[str, list[float]]) -> InvalidArgument | None:
-    """The error naming the first joint whose values do not give a rotation matrix as the frame computes it
-    (float32; orthonormal to 1e-3, determinant +1): 6D needs two non-zero, non-parallel 3-vectors, axis-angle an
-    angle whose square is finite."""
-    for name, values in joints.items():
-        v = torch.tensor(values, dtype=torch.float32)
-        m = (axis_angle_to_matrix(v) if len(values) == 3 else rot6d_to_matrix(v)).double()
-        ok = bool(torch.isfinite(m).all())
-        if ok:
-            ok = float((m @ m.T - torch.eye(3, dtype=torch.float64)).abs().max()) <= 1e-3
-            ok = ok and float(torch.linalg.det(m)) > 1 - 1e-3
-        if not ok:
-            return InvalidArgument("not a rotation: 6D needs two non-zero, non-parallel 3-vectors (the first two rows "
-                                   "of the matrix); axis-angle an angle in radians of moderate size",
-                                   field=f"joints.{name}")
-    return None
-
-
-def frame(avatar: Avatar, params: pb.FrameParams, order: list[str]) -> Frame:
-    """One frame (batch of 1) from a FrameParams message; ``order`` maps positional coefficients to names."""
-    line: dict[str, object] = {}
+def _coefficients(avatar: Avatar, params: pb.FrameParams, order: list[str]) -> torch.Tensor:
+    """[1, K] coefficients by position (in ``order``) or by name; the wire field named on every problem."""
+    out = torch.zeros(1, avatar.num_expressions)
     if params.coefficients and params.named_coefficients:
         raise InvalidArgument("give coefficients by position or by name, not both", field="coefficients")
     if params.coefficients:
@@ -198,34 +178,41 @@ def frame(avatar: Avatar, params: pb.FrameParams, order: list[str]) -> Frame:
             raise InvalidArgument(
                 f"expected {len(order)} coefficients in the order {some(order, 10)}; got {len(params.coefficients)}"
                 " (or give them by name in named_coefficients)", field="coefficients")
-        same = order is avatar.expression_names or order == avatar.expression_names
-        line["expression"] = list(params.coefficients) if same else dict(zip(order, params.coefficients, strict=True))
+        values = list(params.coefficients)
+        if not all(math.isfinite(v) for v in values):
+            raise InvalidArgument("values must be finite (no NaN or Infinity)", field="coefficients")
+        if order is avatar.expression_names or order == avatar.expression_names:
+            out[0] = torch.tensor(values)
+        else:
+            out[0, [avatar.expression_names.index(n) for n in order]] = torch.tensor(values)
     elif params.named_coefficients:
-        known = set(avatar.expression_names)
-        unknown = [n for n in params.named_coefficients if n not in known]
+        index = {n: i for i, n in enumerate(avatar.expression_names)}
+        unknown = [n for n in params.named_coefficients if n not in index]
         if unknown:
-            raise InvalidArgument(f"unknown expression names {some(unknown)}; this avatar has {len(known)}: "
+            raise InvalidArgument(f"unknown expression names {some(unknown)}; this avatar has {len(index)}: "
                                   f"{some(avatar.expression_names, 10)}", field="named_coefficients")
-        line["expression"] = dict(params.named_coefficients)
+        for name, v in params.named_coefficients.items():
+            out[0, index[name]] = _finite(v, f"named_coefficients.{name}")
+    return out
+
+
+def frame(avatar: Avatar, params: pb.FrameParams, order: list[str]) -> Frame:
+    """One frame (batch of 1) from a FrameParams message; ``order`` maps positional coefficients to names. Built
+    directly from the message, each part checked as it is read (errors name the wire's field)."""
+    expression = _coefficients(avatar, params, order)
+    rotations = torch.eye(3).expand(1, avatar.num_joints, 3, 3).clone()
+    for name, rot in params.joints.items():
+        matrix = _rotation(avatar, name, rot)  # checks the name first
+        rotations[0, avatar.joint_names.index(name)] = matrix
+    eyelids = None
     if params.eyelids:
-        line["eyelids"] = list(params.eyelids)
-    joints = {name: _rotation(avatar, name, rot) for name, rot in params.joints.items()}
-    if joints:
-        line["joints"] = joints
-    try:
-        return parse_frame(avatar, line)
-    except FrameError as e:  # the frame's check of every joint matrix: name the joint the client sent
-        if e.field == "joint_rotations" and (named := _not_a_rotation(joints)) is not None:
-            raise named from None
-        raise InvalidArgument(e.detail, field=_wire_field(e.field or "", bool(params.named_coefficients))) from None
-
-
-def _wire_field(field: str, named: bool) -> str:
-    """A driving-line field (render_core.drive: ``expression[.name]``, ``joint_rotations``) as the FrameParams field
-    the client sent (``coefficients`` or ``named_coefficients[.name]``, ``joints``)."""
-    if field == "expression" or field.startswith("expression."):
-        return "named_coefficients" + field[len("expression"):] if named else "coefficients"
-    return {"joint_rotations": "joints"}.get(field, field)
+        values = list(params.eyelids)
+        if len(values) != 2:
+            raise InvalidArgument(f"expected 2 values (left, right), got {len(values)}", field="eyelids")
+        if not all(math.isfinite(v) for v in values):
+            raise InvalidArgument("values must be finite (no NaN or Infinity)", field="eyelids")
+        eyelids = torch.tensor([values])
+    return Frame(expression, rotations, eyelids)
 
 
 # ------------------------------------------------------------------------------------------- per-frame budget
