@@ -8,10 +8,11 @@ The library has no web, queue or global state; the service builds on it. The nam
     frame = Frame.from_params(avatar, expression={"jawOpen": 0.8})
     out = render(deform(avatar, frame), orbit([0.0], width=512, height=512), mode=avatar.raster_mode)
 
-Layout (docs/architecture.md): the avatar model and its file at the top (avatar, bundle, camera, deform, drive,
-renderer, rotation, sh, errors, atomic); rasterizer backends in ``raster/`` (C++ kernels in ``native/``); stream
-codecs and file writers in ``media/``; face models in ``facemodel/``; datasets in ``data/``; training in
-``train/``; evaluation in ``evaluation/``; the command-line tools in ``tools/``.
+Layout (docs/architecture.md): the avatar model and its file at the top (avatar, gaussians, packed, bundle, camera,
+deform, drive, renderer, rotation, sh, errors, atomic, synthetic); rasterizer backends in ``raster/`` (C++ kernels
+in ``native/``); stream codecs and file writers in ``media/``; face models in ``facemodel/``; datasets in
+``data/``; training in ``train/``; evaluation in ``evaluation/``; the command-line tools in ``tools/``. Each of
+the last four may import only what comes before it (pyproject.toml's import-linter contracts).
 """
 
 from __future__ import annotations

@@ -35,6 +35,7 @@ import torch
 from torch import Tensor
 
 from .errors import ShapeError
+from .gaussians import Gaussians
 
 GEOMETRY_LENGTH = 11  # position 3, quaternion 4, log-scale 3, opacity logit 1
 SH_OFFSET = 16  # where the SH coefficients start in a Gaussian row
@@ -190,7 +191,7 @@ class SparseDeltas:
                             self.num_gaussians, self.sh_coeffs)
 
     @staticmethod
-    def from_dense(deltas, dtype: torch.dtype | None = None) -> SparseDeltas:
+    def from_dense(deltas: Gaussians, dtype: torch.dtype | None = None) -> SparseDeltas:
         """The sparse form of dense ``deltas`` (Gaussians ``[K, N, ...]``) stored in ``dtype`` (default theirs).
         A pair is kept when one of its values is non-zero after the cast."""
         k, n = deltas.means.shape[:2]
@@ -201,10 +202,8 @@ class SparseDeltas:
         color = deltas.sh.detach().to("cpu", dtype).reshape(k, n, 3 * c)
         return SparseDeltas(Pairs.from_dense(geometry), Pairs.from_dense(color), k, n, c)
 
-    def to_dense(self, dtype: torch.dtype | None = None):
+    def to_dense(self, dtype: torch.dtype | None = None) -> Gaussians:
         """Dense Gaussians ``[K, N, ...]`` deltas (zeros where no pair is stored)."""
-        from .avatar import Gaussians
-
         k, n, c = self.num_expressions, self.num_gaussians, self.sh_coeffs
         dtype = dtype or self.dtype
         parts = []
@@ -246,7 +245,7 @@ class SparseDeltas:
 # ------------------------------------------------------------------------------------------------ Gaussian rows
 
 
-def pack_rows(neutral, mouth) -> Tensor:
+def pack_rows(neutral: Gaussians, mouth: Gaussians) -> Tensor:
     """The ``[N + M, R]`` float32 Gaussian rows of face and mouth Gaussians (module docstring): the tensor they
     are views of when they were unpacked from one, else a new one."""
     c = neutral.sh.shape[-2]
@@ -266,9 +265,8 @@ def pack_rows(neutral, mouth) -> Tensor:
     return rows
 
 
-def unpack_rows(rows: Tensor, n: int, c: int):
+def unpack_rows(rows: Tensor, n: int, c: int) -> tuple[Gaussians, Gaussians]:
     """Face and mouth Gaussians as views of ``rows [N + M, R]``."""
-    from .avatar import Gaussians
 
     def views(block: Tensor) -> Gaussians:
         return Gaussians(means=block[:, 0:3], quats=block[:, 3:7], log_scales=block[:, 7:10],
@@ -277,7 +275,7 @@ def unpack_rows(rows: Tensor, n: int, c: int):
     return views(rows[:n]), views(rows[n:])
 
 
-def _rows_behind(neutral, mouth, width: int) -> Tensor | None:
+def _rows_behind(neutral: Gaussians, mouth: Gaussians, width: int) -> Tensor | None:
     """The rows tensor that ``neutral`` and ``mouth`` are views of (as :func:`unpack_rows` makes them), or None."""
     first = neutral.means
     if first.dtype != torch.float32 or first.device.type != "cpu" or first.dim() != 2:

@@ -5,8 +5,8 @@ import math
 
 import pytest
 import torch
-from blendsplat.v1 import render_pb2 as pb
 
+from blendsplat.v1 import render_pb2 as pb
 from render_core import drive
 from render_core.drive import parse_line
 from render_core.errors import FrameError

@@ -42,10 +42,6 @@ class Fit:
     def expression_weights(self) -> np.ndarray:
         return self.weights[: self.manifest.num_expressions]
 
-    @property
-    def joint_weights(self) -> np.ndarray:
-        return self.weights[self.manifest.num_expressions:]
-
     def apply(self, source: np.ndarray, clamp: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """Reference evaluation in numpy: source [B, S] -> (expression [B, T], joints [B, J, 3])."""
         y = np.asarray(source, np.float64) @ self.weights.T + self.bias

@@ -229,27 +229,50 @@ def _gaze_track(n: int, lo: int, hi: int, limit: float, g: torch.Generator) -> T
 
 
 def make_script(model: FaceModel, frames: int, seed: int) -> Script:
-    """The seeded performance of ``frames`` frames for ``model`` (module docstring: what moves, and the split)."""
+    """The seeded performance of ``frames`` frames for ``model`` (module docstring: what moves, and the split).
+
+    One generator draws everything, in this order: the actions, the training events and blinks, the test's
+    conflict pairs, talking, gaze, head pose, identity shape (the helpers below, called in that order)."""
     if frames < 2:
         raise OptionError(f"need at least 2 (one training, one test), got {frames}", field="frames")
     g = torch.Generator().manual_seed(int(seed))
     n = frames
     n_test = held_out_count(n)
     n_train = n - n_test
-    names = {nm: i for i, nm in enumerate(model.expression_names)}
     actions, conflict_names = _actions_for(model, g)
     action_names = list(actions)
     a_index = {a: i for i, a in enumerate(action_names)}
     conflicts = [(a_index[a], a_index[b]) for a, b in conflict_names]
-    partners: dict[str, set[str]] = {a: set() for a in action_names}
+    act = torch.zeros(n, len(action_names), dtype=torch.float64)
+    _schedule_training(act, a_index, conflict_names, n_train, g)
+    _schedule_test(act, conflicts, n_train, g)
+    expr, rot, eyelids, jaw_mode = _action_values(model, actions, act, a_index, g)
+    expr = expr.clamp(0.0, 1.0)
+    gaze, gaze_mode = _apply_gaze(model, expr, rot, n_train, g)
+    head = _head_pose(n_train, n_test, g)
+
+    shape = torch.zeros(model.num_shape, dtype=torch.float64)
+    if model.num_shape:
+        shape[: min(10, model.num_shape)] = 0.5 * torch.randn(min(10, model.num_shape), generator=g,
+                                                              dtype=torch.float64)
+    return Script(
+        expression=expr.float(), joint_rotations=rot.float(), eyelids=eyelids.float(), shape=shape.float(),
+        head=head.float(), gaze=gaze.float(), actions=action_names, activation=act.float(), conflicts=conflicts,
+        train=torch.arange(n_train), test=torch.arange(n_train, n), jaw_mode=jaw_mode, gaze_mode=gaze_mode,
+    )
+
+
+def _schedule_training(act: Tensor, a_index: dict[str, int], conflict_names: list[tuple[str, str]], n_train: int,
+                       g: torch.Generator) -> None:
+    """Add the training frames' events to ``act [N, A]``: scheduled greedily, conflicting actions never overlap, an
+    event overlaps at most 3 others; then blinks every 2-5 s, in training and test alike (no conflict has one)."""
+    n = act.shape[0]
+    partners: dict[str, set[str]] = {a: set() for a in a_index}
     for a, b in conflict_names:
         partners[a].add(b)
         partners[b].add(a)
-    act = torch.zeros(n, len(action_names), dtype=torch.float64)
-
-    # ---- training: events scheduled greedily; conflicting actions never overlap; an event overlaps <= 3 others.
     events: list[tuple[str, int, int]] = []  # (action, start, end)
-    pool = [a for a in action_names if a != "blink"]
+    pool = [a for a in a_index if a != "blink"]
     weights = torch.tensor([ACTION_WEIGHTS.get(a, 1.0) for a in pool], dtype=torch.float64)
     t = 0
     while pool and t < n_train:
@@ -268,7 +291,7 @@ def make_script(model: FaceModel, frames: int, seed: int) -> Script:
             act[:, a_index[a]] += _envelope(n, start, end - start, ramp) * _uniform(g, *TRAIN_AMPLITUDE)
             break
         t += _randint(g, 4, 12)
-    if "blink" in a_index:  # blinks every 2-5 s, in training and test alike (blinks are in no conflict)
+    if "blink" in a_index:
         t = _randint(g, 5, 60)
         while t < n:
             length = _randint(g, *DURATIONS["blink"])
@@ -276,27 +299,36 @@ def make_script(model: FaceModel, frames: int, seed: int) -> Script:
             act[:, a_index["blink"]] += _envelope(n, t, end - t, 2)
             t += _randint(g, 60, 150)
 
-    # ---- test: conflict pairs in turn, cross-faded (the two nearest pairs' weights sum to 1).
-    if conflicts:
-        pairs = [conflicts[i] for i in torch.randperm(len(conflicts), generator=g).tolist()]
-        seg = max(6, min(30, math.ceil(n_test / max(1, min(len(pairs), n_test // 6 or 1)))))
-        count = math.ceil(n_test / seg)
-        tt = torch.arange(n_test, dtype=torch.float64)
-        # c(t): plateaus at integers k (combo k) with 4-frame linear transitions centred on the boundaries.
-        c = torch.zeros(n_test, dtype=torch.float64)
-        for k in range(1, count):
-            c += ((tt - (k * seg - 2.0)) / 4.0).clamp(0.0, 1.0)
-        for k in range(count):
-            wk = (1.0 - (c - k).abs()).clamp_min(0.0)
-            a, b = pairs[k % len(pairs)]
-            for i in (a, b):
-                act[n_train:, i] += wk * _uniform(g, *TEST_AMPLITUDE)
-    # A blink in training may have been clipped to the test boundary; conflicts never involve blinks.
 
-    # ---- coefficients, jaw and gaze from the activations.
-    K, J = model.num_expressions, model.num_joints
-    expr = torch.zeros(n, K, dtype=torch.float64)
-    rot = torch.zeros(n, J, 3, dtype=torch.float64)
+def _schedule_test(act: Tensor, conflicts: list[tuple[int, int]], n_train: int, g: torch.Generator) -> None:
+    """Add the test frames' conflict pairs to ``act [N, A]``, in turn, cross-faded (the two nearest pairs' weights
+    sum to 1). A blink in training may have been clipped to the test boundary; conflicts never involve blinks."""
+    if not conflicts:
+        return
+    n_test = act.shape[0] - n_train
+    pairs = [conflicts[i] for i in torch.randperm(len(conflicts), generator=g).tolist()]
+    seg = max(6, min(30, math.ceil(n_test / max(1, min(len(pairs), n_test // 6 or 1)))))
+    count = math.ceil(n_test / seg)
+    tt = torch.arange(n_test, dtype=torch.float64)
+    # c(t): plateaus at integers k (combo k) with 4-frame linear transitions centred on the boundaries.
+    c = torch.zeros(n_test, dtype=torch.float64)
+    for k in range(1, count):
+        c += ((tt - (k * seg - 2.0)) / 4.0).clamp(0.0, 1.0)
+    for k in range(count):
+        wk = (1.0 - (c - k).abs()).clamp_min(0.0)
+        a, b = pairs[k % len(pairs)]
+        for i in (a, b):
+            act[n_train:, i] += wk * _uniform(g, *TEST_AMPLITUDE)
+
+
+def _action_values(model: FaceModel, actions: dict[str, dict[int, float]], act: Tensor, a_index: dict[str, int],
+                   g: torch.Generator) -> tuple[Tensor, Tensor, Tensor, str]:
+    """Expression coefficients ``[N, K]`` (not clamped yet), joint rotations ``[N, J, 3]`` and eyelids ``[N, 2]``
+    from the activations, with talking (jaw and visemes) and blinks; and how the jaw opens."""
+    n = act.shape[0]
+    names = {nm: i for i, nm in enumerate(model.expression_names)}
+    expr = torch.zeros(n, model.num_expressions, dtype=torch.float64)
+    rot = torch.zeros(n, model.num_joints, 3, dtype=torch.float64)
     eyelids = torch.zeros(n, 2, dtype=torch.float64)
     for a, coeffs in actions.items():
         w = act[:, a_index[a]]
@@ -304,26 +336,40 @@ def make_script(model: FaceModel, frames: int, seed: int) -> Script:
             expr[:, i] += w * c
     jaw_mode = "coefficient" if "jawOpen" in names else "joint" if "jaw" in model.joint_names else "none"
     if "talk" in a_index:
-        w = act[:, a_index["talk"]]
-        tt = torch.arange(n, dtype=torch.float64)
-        rate = _uniform(g, 3.0, 4.5) / FPS  # syllables per frame
-        osc = 0.5 + 0.5 * torch.sin(2 * math.pi * rate * tt + 2 * math.pi * float(torch.rand(1, generator=g)))
-        osc = 0.35 + 0.65 * osc * (0.7 + 0.3 * _smooth_noise(n, g, (15.0, 50.0)))
-        jaw = w * osc
-        if jaw_mode == "coefficient":
-            expr[:, names["jawOpen"]] += TALK_JAW * jaw
-        elif jaw_mode == "joint":
-            rot[:, model.joint_names.index("jaw"), 0] += JAW_ANGLE * jaw
-        for v in VISEMES:
-            if v in names:
-                level = (0.5 + 0.5 * _smooth_noise(n, g, (8.0, 30.0))).clamp(0, 1) ** 2
-                # mouthClose never exceeds the jaw opening (ARKit: it only closes the lips of an open jaw).
-                cap = TALK_JAW * jaw if v == "mouthClose" else 0.35
-                expr[:, names[v]] += w * level * cap
+        _talk(model, act[:, a_index["talk"]], expr, rot, jaw_mode, g)
     if "blink" in a_index and not actions["blink"] and model.eyelid_basis is not None:
         eyelids += act[:, a_index["blink"], None]
-    expr = expr.clamp(0.0, 1.0)
+    return expr, rot, eyelids, jaw_mode
 
+
+def _talk(model: FaceModel, w: Tensor, expr: Tensor, rot: Tensor, jaw_mode: str, g: torch.Generator) -> None:
+    """Add talking at activation ``w [N]``: a syllable-rate jaw oscillation (a coefficient or the jaw joint) and
+    noisy visemes, to ``expr`` and ``rot``."""
+    n = w.shape[0]
+    names = {nm: i for i, nm in enumerate(model.expression_names)}
+    tt = torch.arange(n, dtype=torch.float64)
+    rate = _uniform(g, 3.0, 4.5) / FPS  # syllables per frame
+    osc = 0.5 + 0.5 * torch.sin(2 * math.pi * rate * tt + 2 * math.pi * float(torch.rand(1, generator=g)))
+    osc = 0.35 + 0.65 * osc * (0.7 + 0.3 * _smooth_noise(n, g, (15.0, 50.0)))
+    jaw = w * osc
+    if jaw_mode == "coefficient":
+        expr[:, names["jawOpen"]] += TALK_JAW * jaw
+    elif jaw_mode == "joint":
+        rot[:, model.joint_names.index("jaw"), 0] += JAW_ANGLE * jaw
+    for v in VISEMES:
+        if v in names:
+            level = (0.5 + 0.5 * _smooth_noise(n, g, (8.0, 30.0))).clamp(0, 1) ** 2
+            # mouthClose never exceeds the jaw opening (ARKit: it only closes the lips of an open jaw).
+            cap = TALK_JAW * jaw if v == "mouthClose" else 0.35
+            expr[:, names[v]] += w * level * cap
+
+
+def _apply_gaze(model: FaceModel, expr: Tensor, rot: Tensor, n_train: int,
+                g: torch.Generator) -> tuple[Tensor, str]:
+    """The gaze track ``[N, 2]`` (fixations and saccades; wider in the test frames), written into ``expr``'s
+    eyeLook* coefficients or ``rot``'s eye joints; and which of the two (or neither)."""
+    n = expr.shape[0]
+    names = {nm: i for i, nm in enumerate(model.expression_names)}
     gaze = torch.cat([_gaze_track(n, 0, n_train, 1.0, g), _gaze_track(n, n_train, n, TEST_GAZE, g)])
     gaze_mode = ("coefficients" if all(nm in names for nm in GAZE_NAMES)
                  else "joints" if "eye_l" in model.joint_names and "eye_r" in model.joint_names else "none")
@@ -339,8 +385,12 @@ def make_script(model: FaceModel, frames: int, seed: int) -> Script:
             ji = model.joint_names.index(j)
             rot[:, ji, 0] = -GAZE_ANGLES[1] * gaze[:, 1]  # rotation about -x looks up
             rot[:, ji, 1] = GAZE_ANGLES[0] * gaze[:, 0]  # about +y looks towards +x
+    return gaze, gaze_mode
 
-    # ---- head pose (through the camera): training inside the L1 diamond, test on the ring outside it.
+
+def _head_pose(n_train: int, n_test: int, g: torch.Generator) -> Tensor:
+    """Head pose ``[N, 3]`` (yaw, pitch, roll in degrees; applied through the camera): the training frames inside
+    the L1 diamond of YAW_RANGE x PITCH_RANGE, the test frames on the ring outside it (TEST_RING)."""
     yaw_n = _smooth_noise(n_train, g, (60.0, 200.0))
     pitch_n = _smooth_noise(n_train, g, (50.0, 180.0))
     l1 = (yaw_n.abs() + pitch_n.abs()).clamp_min(1.0)
@@ -353,17 +403,7 @@ def make_script(model: FaceModel, frames: int, seed: int) -> Script:
     unit = torch.stack([cs, sn], -1) / (cs.abs() + sn.abs())[:, None]  # on the unit L1 circle
     head_test = torch.stack([YAW_RANGE * radius * unit[:, 0], PITCH_RANGE * radius * unit[:, 1],
                              TEST_ROLL * _smooth_noise(n_test, g, (40.0, 120.0))], -1)
-    head = torch.cat([head_train, head_test])
-
-    shape = torch.zeros(model.num_shape, dtype=torch.float64)
-    if model.num_shape:
-        shape[: min(10, model.num_shape)] = 0.5 * torch.randn(min(10, model.num_shape), generator=g,
-                                                              dtype=torch.float64)
-    return Script(
-        expression=expr.float(), joint_rotations=rot.float(), eyelids=eyelids.float(), shape=shape.float(),
-        head=head.float(), gaze=gaze.float(), actions=action_names, activation=act.float(), conflicts=conflicts,
-        train=torch.arange(n_train), test=torch.arange(n_train, n), jaw_mode=jaw_mode, gaze_mode=gaze_mode,
-    )
+    return torch.cat([head_train, head_test])
 
 
 def _rotation(yaw: Tensor, pitch: Tensor, roll: Tensor) -> Tensor:

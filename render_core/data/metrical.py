@@ -26,7 +26,7 @@ import torch
 
 from ..errors import DatasetError
 from ..rotation import matrix_to_quat, rot6d_to_matrix
-from .portable import Tracking, _raise, _read_image, _tracking_problems, write_dataset
+from .portable import Tracking, check_tracking, read_image, write_dataset
 
 try:  # numpy >= 2
     from numpy._core import multiarray as _multiarray
@@ -152,7 +152,7 @@ def read_metrical(folder: str | os.PathLike, n_expression: int = 50, test_frames
     if missing:
         raise DatasetError(f"{len(missing)} tracked frames have no image: {', '.join(missing[:3])}"
                            f"{' ...' if len(missing) > 3 else ''}", field="images")
-    first = _read_image(images[0], str(images[0]), kind="rgba", width=None, height=None)
+    first = read_image(images[0], str(images[0]), kind="rgba", width=None, height=None)
     height, width = first.shape[:2]
 
     n = len(files)
@@ -193,7 +193,7 @@ def read_metrical(folder: str | os.PathLike, n_expression: int = 50, test_frames
         K=cam_k.astype(np.float32), R=cam_r.astype(np.float32), t=cam_t.astype(np.float32),
         shape=shape.astype(np.float32), train=train, test=test, width=int(width), height=int(height),
         fps=float(fps))
-    _raise(_tracking_problems(tracking), str(folder))
+    check_tracking(tracking, str(folder))
     return tracking, images
 
 
@@ -222,7 +222,7 @@ def convert_metrical(src: str | os.PathLike, out_dir: str | os.PathLike, *, n_ex
 
     def frames():
         for path in images:
-            rgba = _read_image(path, str(path), kind="rgba", width=tracking.width, height=tracking.height)
+            rgba = read_image(path, str(path), kind="rgba", width=tracking.width, height=tracking.height)
             masks.items.append(rgba[..., 3])
             yield rgba[..., :3]
 

@@ -8,6 +8,7 @@ masks (PNG files). Nothing in it is ever executed or unpickled. The specificatio
 - :func:`write_dataset` writes one (into a temporary folder beside the target, then renamed).
 - :func:`read_dataset` checks the manifest and the tracking (not every image) and returns a :class:`Dataset`.
 - :func:`validate_dataset` reports every problem, each prefixed by the field or file it concerns.
+- :func:`check_tracking` and :func:`read_image` are the checks that other readers (``metrical.py``) share.
 """
 
 from __future__ import annotations
@@ -164,38 +165,62 @@ def _names_problems(field: str, names, limit: int) -> tuple[list[Problem], list[
 
 
 def _tracking_problems(tr: Tracking) -> list[Problem]:
-    out: list[Problem] = []
-    add = out.append
-    fm = tr.face_model
-    if not isinstance(fm, str) or not fm or len(fm) > MAX_NAME_CHARS or not fm.isprintable():
-        add(("face_model", f"must be a name of 1 to {MAX_NAME_CHARS} printable characters, got {fm!r}"))
-    for name in ("width", "height"):
-        v = getattr(tr, name)
-        if not _is_int(v) or not 1 <= v <= MAX_SIDE:
-            add((name, f"must be an integer in [1, {MAX_SIDE}] (pixels), got {v!r}"))
-    if not _is_real(tr.fps) or not math.isfinite(tr.fps) or not 0 < tr.fps <= MAX_FPS:
-        add(("fps", f"must be a number in (0, {MAX_FPS:g}], got {tr.fps!r}"))
-
+    """Every problem of a tracking, in a fixed order: the scalars, the names, the arrays' dtypes, the frame count,
+    the shapes, the values (finite, in range, rotations, intrinsics), the train/test split."""
+    out = _scalar_problems(tr)
     expr_problems, expr_names = _names_problems("expression_names", tr.expression_names, MAX_EXPRESSIONS)
     joint_problems, joint_names = _names_problems("joint_names", tr.joint_names, MAX_JOINTS)
     out += expr_problems + joint_problems
+    arrays, dtype_problems = _typed_arrays(tr)
+    out += dtype_problems
+    n = _frame_count(tr)
+    if not 1 <= n <= MAX_FRAMES:
+        out.append(("frames", f"the tracking must have 1 to {MAX_FRAMES} frames, got {n}"))
+    k = len(expr_names) if expr_names is not None else None
+    j = len(joint_names) if joint_names is not None else None
+    good, shape_problems = _shaped_arrays(arrays, n, k, j)
+    out += shape_problems
+    out += _value_problems(good)
+    out += _split_problems(arrays, n)
+    return out
 
+
+def _scalar_problems(tr: Tracking) -> list[Problem]:
+    """The face model's name, the image size and the frame rate."""
+    out: list[Problem] = []
+    fm = tr.face_model
+    if not isinstance(fm, str) or not fm or len(fm) > MAX_NAME_CHARS or not fm.isprintable():
+        out.append(("face_model", f"must be a name of 1 to {MAX_NAME_CHARS} printable characters, got {fm!r}"))
+    for name in ("width", "height"):
+        v = getattr(tr, name)
+        if not _is_int(v) or not 1 <= v <= MAX_SIDE:
+            out.append((name, f"must be an integer in [1, {MAX_SIDE}] (pixels), got {v!r}"))
+    if not _is_real(tr.fps) or not math.isfinite(tr.fps) or not 0 < tr.fps <= MAX_FPS:
+        out.append(("fps", f"must be a number in (0, {MAX_FPS:g}], got {tr.fps!r}"))
+    return out
+
+
+def _typed_arrays(tr: Tracking) -> tuple[dict[str, np.ndarray], list[Problem]]:
+    """The float and index arrays that are numpy arrays of their file dtype, and a problem for each other one."""
     arrays: dict[str, np.ndarray] = {}
+    out: list[Problem] = []
     for name in FLOAT_ARRAYS + INDEX_ARRAYS:
         a = getattr(tr, name)
         want = np.float32 if name in FLOAT_ARRAYS else np.int64
         if not isinstance(a, np.ndarray):
-            add((name, f"must be a numpy array, got {type(a).__name__}"))
+            out.append((name, f"must be a numpy array, got {type(a).__name__}"))
         elif a.dtype != want:
-            add((name, f"dtype must be {np.dtype(want).name}, got {a.dtype}"))
+            out.append((name, f"dtype must be {np.dtype(want).name}, got {a.dtype}"))
         else:
             arrays[name] = a
+    return arrays, out
 
-    n = _frame_count(tr)
-    if not 1 <= n <= MAX_FRAMES:
-        add(("frames", f"the tracking must have 1 to {MAX_FRAMES} frames, got {n}"))
-    k = len(expr_names) if expr_names is not None else None
-    j = len(joint_names) if joint_names is not None else None
+
+def _shaped_arrays(arrays: dict[str, np.ndarray], n: int, k: int | None,
+                   j: int | None) -> tuple[dict[str, np.ndarray], list[Problem]]:
+    """The per-frame arrays (and ``shape``) of the expected shapes for N frames, K expressions and J joints (None:
+    unknown, any size), and a problem for each other one."""
+    out: list[Problem] = []
     expected = {"expression": (("N", n), ("K", k)), "joint_rotations": (("N", n), ("J", j), ("", 3)),
                 "eyelids": (("N", n), ("", 2)), "K": (("N", n), ("", 3), ("", 3)),
                 "R": (("N", n), ("", 3), ("", 3)), "t": (("N", n), ("", 3))}
@@ -211,85 +236,105 @@ def _tracking_problems(tr: Tracking) -> list[Problem]:
             continue
         sym = ", ".join(s or str(v) for s, v in dims)
         val = ", ".join("?" if v is None else str(v) for _, v in dims)
-        add((name, f"expected shape [{sym}] = [{val}], got {list(a.shape)}"))
+        out.append((name, f"expected shape [{sym}] = [{val}], got {list(a.shape)}"))
     if "shape" in arrays:
         s = arrays["shape"]
         if s.ndim != 1 or s.shape[0] > MAX_SHAPE:
-            add(("shape", f"expected a 1-D array of at most {MAX_SHAPE} identity coefficients, got "
-                          f"{list(s.shape)}"))
+            out.append(("shape", f"expected a 1-D array of at most {MAX_SHAPE} identity coefficients, got "
+                                 f"{list(s.shape)}"))
         else:
             good["shape"] = s
+    return good, out
 
+
+def _value_problems(good: dict[str, np.ndarray]) -> list[Problem]:
+    """Non-finite values in well-shaped arrays, then the ranges of the finite ones: coefficients, joint angles,
+    translations, pinhole intrinsics, rotation matrices."""
+    out: list[Problem] = []
     finite: dict[str, np.ndarray] = {}
     for name, a in good.items():
         bad = ~np.isfinite(a)
         if bad.any():
             where = f" at frames {_frames_text(np.nonzero(bad.reshape(len(a), -1).any(1))[0])}" if name != "shape" \
                 else ""
-            add((name, f"{int(bad.sum())} non-finite values (NaN/Inf){where}"))
+            out.append((name, f"{int(bad.sum())} non-finite values (NaN/Inf){where}"))
         else:
             finite[name] = a
     for name in ("expression", "eyelids"):
         a = finite.get(name)
         if a is not None and a.size and np.abs(a).max() > MAX_ABS_COEFFICIENT:
             rows = np.nonzero((np.abs(a) > MAX_ABS_COEFFICIENT).any(1))[0]
-            add((name, f"|value| exceeds {MAX_ABS_COEFFICIENT:g} at frames {_frames_text(rows)}"))
+            out.append((name, f"|value| exceeds {MAX_ABS_COEFFICIENT:g} at frames {_frames_text(rows)}"))
     if "joint_rotations" in finite and finite["joint_rotations"].size:
         angle = np.linalg.norm(finite["joint_rotations"].astype(np.float64), axis=-1)
         rows = np.nonzero((angle > MAX_JOINT_ANGLE).any(1))[0]
         if len(rows):
-            add(("joint_rotations", f"rotation angles exceed 2 pi (axis-angle norm) at frames {_frames_text(rows)}"))
+            out.append(("joint_rotations",
+                        f"rotation angles exceed 2 pi (axis-angle norm) at frames {_frames_text(rows)}"))
     if "t" in finite:
         rows = np.nonzero((np.abs(finite["t"]) > MAX_ABS_TRANSLATION).any(1))[0]
         if len(rows):
-            add(("t", f"|translation| exceeds {MAX_ABS_TRANSLATION:g} m at frames {_frames_text(rows)}"))
+            out.append(("t", f"|translation| exceeds {MAX_ABS_TRANSLATION:g} m at frames {_frames_text(rows)}"))
     if "K" in finite:
-        kk = finite["K"].astype(np.float64)
-        fixed = np.abs(kk[:, 2] - [0.0, 0.0, 1.0]).max(1) + np.abs(kk[:, 1, 0]) + np.abs(kk[:, 0, 1])
-        rows = np.nonzero(fixed > 1e-6)[0]
-        if len(rows):
-            add(("K", f"not a pinhole intrinsic matrix [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] at frames "
-                      f"{_frames_text(rows)}"))
-        rows = np.nonzero((kk[:, 0, 0] <= 0) | (kk[:, 1, 1] <= 0))[0]
-        if len(rows):
-            add(("K", f"focal lengths fx, fy must be positive (pixels) at frames {_frames_text(rows)}"))
+        out += _intrinsics_problems(finite["K"])
     if "R" in finite:
         r = finite["R"].astype(np.float64)
         err = np.abs(r @ r.transpose(0, 2, 1) - np.eye(3)).max((1, 2))
         det = np.linalg.det(r) if len(r) else np.zeros(0)
         rows = np.nonzero((err > ROTATION_TOLERANCE) | (np.abs(det - 1.0) > ROTATION_TOLERANCE))[0]
         if len(rows):
-            add(("R", f"not a rotation matrix (orthonormal, det +1, tolerance {ROTATION_TOLERANCE:g}) at frames "
-                      f"{_frames_text(rows)}"))
+            out.append(("R", f"not a rotation matrix (orthonormal, det +1, tolerance {ROTATION_TOLERANCE:g}) at "
+                             f"frames {_frames_text(rows)}"))
+    return out
 
+
+def _intrinsics_problems(k: np.ndarray) -> list[Problem]:
+    """Finite ``K [N, 3, 3]`` that are not pinhole matrices with positive focal lengths."""
+    out: list[Problem] = []
+    kk = k.astype(np.float64)
+    fixed = np.abs(kk[:, 2] - [0.0, 0.0, 1.0]).max(1) + np.abs(kk[:, 1, 0]) + np.abs(kk[:, 0, 1])
+    rows = np.nonzero(fixed > 1e-6)[0]
+    if len(rows):
+        out.append(("K", f"not a pinhole intrinsic matrix [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] at frames "
+                         f"{_frames_text(rows)}"))
+    rows = np.nonzero((kk[:, 0, 0] <= 0) | (kk[:, 1, 1] <= 0))[0]
+    if len(rows):
+        out.append(("K", f"focal lengths fx, fy must be positive (pixels) at frames {_frames_text(rows)}"))
+    return out
+
+
+def _split_problems(arrays: dict[str, np.ndarray], n: int) -> list[Problem]:
+    """The train and test indices: 1-D, in [0, n), unique, train not empty, disjoint and together every frame."""
+    out: list[Problem] = []
     split: dict[str, np.ndarray] = {}
     for name in INDEX_ARRAYS:
         a = arrays.get(name)
         if a is None:
             continue
         if a.ndim != 1:
-            add((name, f"expected a 1-D array of frame indices, got shape {list(a.shape)}"))
+            out.append((name, f"expected a 1-D array of frame indices, got shape {list(a.shape)}"))
             continue
         problem = False
         if n >= 1 and a.size and (a.min() < 0 or a.max() >= n):
-            add((name, f"frame indices must lie in [0, {n}), got {_frames_text(a[(a < 0) | (a >= n)])}"))
+            out.append((name, f"frame indices must lie in [0, {n}), got {_frames_text(a[(a < 0) | (a >= n)])}"))
             problem = True
         values, counts = np.unique(a, return_counts=True)
         if (counts > 1).any():
-            add((name, f"frame indices repeat: {_frames_text(values[counts > 1])}"))
+            out.append((name, f"frame indices repeat: {_frames_text(values[counts > 1])}"))
             problem = True
         if not problem:
             split[name] = a
     if "train" in split and not split["train"].size:
-        add(("train", "the training set is empty"))
+        out.append(("train", "the training set is empty"))
     if len(split) == 2:
         both = np.intersect1d(split["train"], split["test"])
         if both.size:
-            add(("test", f"train and test overlap at frames {_frames_text(both)}"))
+            out.append(("test", f"train and test overlap at frames {_frames_text(both)}"))
         elif 1 <= n <= MAX_FRAMES:
             missing = np.setdiff1d(np.arange(n), np.concatenate([split["train"], split["test"]]))
             if missing.size:
-                add(("train", f"train and test together must cover every frame; missing {_frames_text(missing)}"))
+                out.append(("train",
+                            f"train and test together must cover every frame; missing {_frames_text(missing)}"))
     return out
 
 
@@ -333,6 +378,12 @@ def _raise(problems: list[Problem], what: str) -> None:
     raise DatasetError(f"{m}{more} [{what}]", field=f)
 
 
+def check_tracking(tracking: Tracking, what: str) -> None:
+    """Raise DatasetError naming the first problem of ``tracking`` (its message lists the others and ends with
+    ``[what]``, where the tracking came from); return when it is valid. :meth:`Tracking.validate` lists them."""
+    _raise(_tracking_problems(tracking), what)
+
+
 # ------------------------------------------------------------------------------------------------------- images
 def _oiio():
     import OpenImageIO as oiio
@@ -361,7 +412,7 @@ def _message(e: DatasetError) -> str:
     return text[len(e.field) + 2:] if e.field and text.startswith(f"{e.field}: ") else text
 
 
-def _read_image(path: Path, rel: str, *, kind: str, width: int | None, height: int | None,
+def read_image(path: Path, rel: str, *, kind: str, width: int | None, height: int | None,
                 root: Path | None = None) -> np.ndarray:
     """Decode one image fully: kind "frame" (3 channels; PNG/JPEG 8-bit or EXR half/float), "mask" (1-channel 8-bit
     PNG) or "rgba" (4-channel 8-bit PNG, unassociated alpha). Raises DatasetError(field=rel) naming what is wrong.
@@ -692,9 +743,6 @@ class Dataset:
         pattern = self.manifest.get("frame_files")
         return None if pattern is None else self.root / pattern.format(i)
 
-    def mask_path(self, i: int) -> Path:
-        return self.root / self.manifest["mask_files"].format(self._index(i))
-
     def frame(self, i: int) -> np.ndarray:
         """[H, W, 3] float32 in [0, 1]."""
         i = self._index(i)
@@ -710,7 +758,7 @@ class Dataset:
                 self._video = frames
             return self._video[i].astype(np.float32) / 255.0
         rel = self.manifest["frame_files"].format(i)
-        px = _read_image(self.root / rel, rel, kind="frame", width=tr.width, height=tr.height, root=self.root)
+        px = read_image(self.root / rel, rel, kind="frame", width=tr.width, height=tr.height, root=self.root)
         if px.dtype == np.uint8:
             return px.astype(np.float32) / 255.0
         return np.clip(px, 0.0, 1.0).astype(np.float32)
@@ -718,7 +766,7 @@ class Dataset:
     def mask(self, i: int) -> np.ndarray:
         """[H, W] float32 in [0, 1] (1 = head / foreground)."""
         rel = self.manifest["mask_files"].format(self._index(i))
-        px = _read_image(self.root / rel, rel, kind="mask", width=self.tracking.width, height=self.tracking.height,
+        px = read_image(self.root / rel, rel, kind="mask", width=self.tracking.width, height=self.tracking.height,
                          root=self.root)
         return px.astype(np.float32) / 255.0
 
@@ -794,7 +842,7 @@ def _file_problems(root: Path, manifest: dict | None, tracking: Tracking | None,
                     out.append((rel, why))
                 continue
             try:
-                _read_image(root / rel, rel, kind=kind, width=width, height=height, root=root)
+                read_image(root / rel, rel, kind=kind, width=width, height=height, root=root)
             except DatasetError as e:
                 out.append((rel, _message(e)))
     return out
@@ -863,7 +911,7 @@ def write_dataset(out_dir: str | os.PathLike, frames: Iterable[np.ndarray], mask
     if out_dir.exists() and (not out_dir.is_dir() or any(out_dir.iterdir())):
         raise DatasetError(f"{out_dir} exists and is not an empty folder; refusing to overwrite it", field="out_dir")
     tracking = _coerced(tracking)
-    _raise(_tracking_problems(tracking), "tracking")
+    check_tracking(tracking, "tracking")
     n, width, height = tracking.frames, tracking.width, tracking.height
 
     manifest = {"format": FORMAT, "version": VERSION, "frames": n, "width": width, "height": height,

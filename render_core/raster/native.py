@@ -82,7 +82,7 @@ def verified_fastest_path() -> str:
         return paths[0]
     from ..camera import orbit
     from ..rotation import axis_angle_to_matrix
-    from ..tools.synth import synth_avatar
+    from ..synthetic import synth_avatar
 
     avatar = synth_avatar(400, 4, seed=11)
     packed = NativeAvatar(avatar)

