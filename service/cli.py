@@ -12,7 +12,7 @@ from pathlib import Path
 
 from render_core.tools import cli as core_cli
 
-from . import keys_cli
+from .access import keys_cli
 
 
 def _settings(args: argparse.Namespace):
@@ -51,14 +51,14 @@ def cmd_up(args: argparse.Namespace) -> int:
 
 
 def cmd_worker(args: argparse.Namespace) -> int:
-    from .worker import main as worker_main
+    from .jobs.worker import main as worker_main
 
     return worker_main(args)
 
 
 def _add_worker(commands) -> None:
-    """`blendsplat worker`: its options are service/worker.py's own (``add_arguments``), added when the command is
-    parsed, so no other command imports the worker (or needs it to exist)."""
+    """`blendsplat worker`: its options are service/jobs/worker.py's own (``add_arguments``), added when the command
+    is parsed, so no other command imports the worker (or needs it to exist)."""
     w = commands.add_parser("worker", help="train queued jobs from the job database until SIGTERM",
                             description="Claims jobs from the job database (BLENDSPLAT_JOBS_URL, default the SQLite "
                                         "file <data-dir>/jobs.db) and trains them one at a time; SIGTERM "
@@ -70,7 +70,7 @@ def _add_worker(commands) -> None:
     def parse_known_args(args=None, namespace=None):
         if not added:
             try:
-                from .worker import add_arguments
+                from .jobs.worker import add_arguments
             except ImportError as e:
                 w.error(f"the worker is unavailable: {e}")
             add_arguments(w)
@@ -109,8 +109,7 @@ def cmd_migrate(args: argparse.Namespace) -> int:
     from sqlalchemy.engine import make_url
     from sqlalchemy.exc import SQLAlchemyError
 
-    from .jobs.migrations import head, migrate
-    from .jobs.netfs import warn_if_sqlite_on_network_filesystem
+    from .db import head, migrate, warn_if_sqlite_on_network_filesystem
     from .settings import Settings
 
     overrides = {k: v for k, v in (("data_dir", args.data_dir), ("jobs_url", args.jobs_url)) if v is not None}
@@ -230,7 +229,7 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--update", type=Path, default=None, metavar="FILE",
                    help="rewrite the table between the settings-reference markers of FILE (e.g. README.md)")
     c.set_defaults(fn=cmd_settings)
-    from .jobs_cli import add_commands as add_jobs_commands
+    from .jobs.cli import add_commands as add_jobs_commands
 
     add_jobs_commands(p.commands)  # `blendsplat jobs ...`: the training jobs' REST client
 

@@ -26,21 +26,25 @@
 Transports only frame messages, and call nothing but the engine: they pass ``StreamRequest`` messages to
 :meth:`Session.handle` and forward what :meth:`Session.responses` yields; avatars are listed, described, loaded,
 unloaded and uploaded through :meth:`Engine.list_avatars`, :meth:`Engine.avatar_info`, :meth:`Engine.load`,
-:meth:`Engine.unload` and :meth:`Engine.replace`. The cache and the bundle store are the engine's own.
+:meth:`Engine.unload` and :meth:`Engine.replace`, retargeting adapters through :meth:`Engine.list_adapters`,
+:meth:`Engine.adapter_info`, :meth:`Engine.put_adapter` and :meth:`Engine.delete_adapter`: the ownership rules and
+the audit are applied here, once for every transport. The cache and the stores are the engine's own.
 """
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import math
 import os
 import time
 import uuid
 from collections import deque
-from collections.abc import AsyncIterable, AsyncIterator
+from collections.abc import AsyncIterable, AsyncIterator, Awaitable, Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import astuple, dataclass, field
+from typing import Any
 
 import torch
 
@@ -53,11 +57,11 @@ from render_core.media.codecs import Encoder, make_encoder
 from render_core.media.pixels import to_rgba8
 
 from . import params
-from .auth import ADMIN_TENANT, TRUSTED, Access, Principal
+from .access.auth import ADMIN_TENANT, TRUSTED, Access, Principal
+from .access.limits import no_release
 from .cache import AvatarCache, Loaded
 from .errors import InvalidArgument, NotFound, ResourceExhausted, ServiceError, Unavailable, to_status
-from .limits import no_release
-from .metrics import Metrics
+from .metrics import STAGES, Metrics
 from .settings import Settings
 from .store import ID_PATTERN as AVATAR_ID_PATTERN  # noqa: F401 - the transports' avatar id pattern
 from .store import BundleStore, Owner, check_id
@@ -279,17 +283,19 @@ class Session:
 
 
 class Engine:
-    def __init__(self, settings: Settings, metrics: Metrics | None = None):
+    def __init__(self, settings: Settings, metrics: Metrics | None = None, *, access: Access | None = None,
+                 store: BundleStore | None = None):
+        """``access``: who may do what, the per-key limits and the audit (the service passes the process's; left
+        out, every call is trusted: :meth:`Access.trusted`, for tests and tools); ``store``: the bundle store
+        (default: a store of ``settings.bundle_dir``)."""
         self.settings = settings
         self.metrics = metrics or Metrics()
-        self.store = BundleStore(settings.bundle_dir)
+        self.store = store or BundleStore(settings.bundle_dir)
         # Render threads: the setting, else every CPU this process may use (not OpenMP's current default, which
         # torch.set_num_threads anywhere in the process would change for the native renderer too).
         threads = settings.render_threads or len(os.sched_getaffinity(0))
         self.cache = AvatarCache(self.store, settings.cache_bytes, self.metrics, settings.backend, threads)
-        # who may do what: keys need the job database, so the process sets this (service/server.py); until then
-        # (tests, tools) every call is trusted
-        self.access = Access(settings.model_copy(update={"auth": "off"}), None)
+        self.access = access or Access.trusted(settings)
         self.sessions: dict[str, Session] = {}
         self.draining = False  # not ready; new streams are refused
         self.frames_closed = False  # open streams take no new frames either
@@ -325,7 +331,7 @@ class Engine:
             entry = await self.cache.load(avatar_id)
         else:
             from render_core.renderer import AvatarRenderer
-            from render_core.tools.synth import synth_avatar
+            from render_core.synthetic import synth_avatar
 
             avatar = synth_avatar(gaussians=256, blendshapes=4)
             entry = Loaded("warm-up", avatar, AvatarRenderer(avatar, self.settings.backend), "", 0, 0)
@@ -364,6 +370,8 @@ class Engine:
         if len(self.sessions) >= self.settings.max_sessions:
             raise ResourceExhausted(f"this replica serves at most {self.settings.max_sessions} streams")
         self._check_read(principal, config.avatar_id, "avatar_id")
+        if config.adapter:
+            self._check_adapter_read(principal, config.adapter)
         release_slot = await asyncio.to_thread(self.access.take_stream, principal)  # may ask Redis: off the loop
         try:
             entry = await self.cache.acquire(check_id(config.avatar_id))
@@ -478,7 +486,7 @@ class Engine:
             m.batch.observe(len(jobs))
         for r in ok:
             t = r.timings
-            for stage in ("queue", "blend", "lbs", "raster", "encode", "total"):
+            for stage in STAGES:
                 m.stage.labels(stage).observe(getattr(t, f"{stage}_ms") / 1e3)
 
     # ---------------------------------------------------------------------------------------------- avatars
@@ -595,6 +603,51 @@ class Engine:
             except (ServiceError, Exception) as e:  # noqa: BLE001 - one broken file must not hide the others
                 log.warning("avatar %s unreadable: %s", avatar_id, e)
         return out
+
+    # --------------------------------------------------------------------------------------------- adapters
+    # An adapter without a tenant is the deployment's: every key may use it, only admin keys change it.
+    def list_adapters(self, principal: Principal = TRUSTED) -> list[dict[str, Any]]:
+        """The retargeting adapters ``principal`` may use (its tenant's and the deployment's; admin keys: all)."""
+        return [a for a in self.adapters.list() if principal.may_read(a.get("tenant"), a.get("tenant") is None)]
+
+    def adapter_info(self, adapter_id: str, principal: Principal = TRUSTED) -> dict[str, Any]:
+        """One adapter's record: manifest, owner, size, digest (NotFound; PermissionDenied: another tenant's)."""
+        info = self.adapters.info(adapter_id)
+        principal.check_read(f"adapter {adapter_id!r}", info.get("tenant"), info.get("tenant") is None)
+        return info
+
+    def _check_adapter_read(self, principal: Principal, adapter_id: str) -> None:
+        """PermissionDenied unless ``principal`` may use the adapter (a missing one is left to the caller)."""
+        if not principal.admin:
+            with contextlib.suppress(NotFound, BlendsplatError):  # missing, or not an adapter id
+                self.adapter_info(adapter_id, principal)
+
+    def _check_adapter_write(self, principal: Principal, adapter_id: str) -> None:
+        try:
+            info = self.adapters.info(adapter_id)
+        except ServiceError:
+            return  # a new id (or an invalid one, refused by the store with its reason)
+        principal.check_write(f"adapter {adapter_id!r}", info.get("tenant"))
+
+    async def put_adapter(self, adapter_id: str, upload: Callable[[], Awaitable[tuple[bytes, bytes]]],
+                          principal: Principal = TRUSTED) -> dict[str, Any]:
+        """Create or replace an adapter. ``upload`` reads its (model, manifest) bytes, once the caller may write
+        the adapter (another tenant's is refused before its upload is read). Both are validated before anything
+        is stored (:meth:`~service.adapters.Adapters.put`); the adapter is the caller's tenant's (an admin key's:
+        the deployment's)."""
+        self._check_adapter_write(principal, adapter_id)
+        model, manifest = await upload()
+        info = await asyncio.to_thread(self.adapters.put, adapter_id, model, manifest,
+                                       None if principal.admin else principal.tenant)
+        self.access.audit(principal, "adapter.put", adapter_id)
+        return info
+
+    def delete_adapter(self, adapter_id: str, principal: Principal = TRUSTED) -> dict[str, Any]:
+        """Delete an adapter (sessions using it keep their loaded copy); its record as it was (NotFound)."""
+        self._check_adapter_write(principal, adapter_id)
+        info = self.adapters.delete(adapter_id)
+        self.access.audit(principal, "adapter.delete", adapter_id)
+        return info
 
 
 def _attributed(exc: BaseException) -> BaseException:

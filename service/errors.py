@@ -1,6 +1,15 @@
-"""Service errors and the one place that maps every error to a gRPC status code and an HTTP status."""
+"""Service errors and the one place that maps every error to a gRPC status code and an HTTP answer.
+
+:func:`to_status` makes any exception a wire status (what gRPC and the WebSocket send); :func:`http_error` makes it
+the HTTP transport's answer: the status, the one JSON error body, and the headers some errors add (``Retry-After``,
+``WWW-Authenticate``, ``Connection: close``). An INTERNAL error is logged there with an id its answer carries.
+"""
 
 from __future__ import annotations
+
+import logging
+import uuid
+from typing import Any
 
 import grpc
 
@@ -13,6 +22,7 @@ from render_core.errors import BlendsplatError
 MAX_MESSAGE_CHARS = 1000
 MAX_FIELD_CHARS = 120
 SOME_NAMES = 5
+log = logging.getLogger(__name__)
 
 
 def some(names, limit: int = SOME_NAMES) -> str:
@@ -35,11 +45,17 @@ class ServiceError(Exception):
     """An error a client caused or must handle; ``code`` is the wire status (a ``blendsplat.v1.Code`` value)."""
 
     code: int = pb.INTERNAL
+    http: int | None = None  # HTTP only: a status of its own, not the code's (a body too large: 413)
+    closes: bool = False  # HTTP only: the request body was not read to its end, so the connection is closed
 
     def __init__(self, message: str, *, field: str | None = None):
         self.field = field
         self.detail = message  # without the field (for replies that carry the field separately)
         super().__init__(f"{field}: {message}" if field else message)
+
+    def http_headers(self) -> dict[str, str]:
+        """Headers the HTTP answer adds (``Retry-After``...)."""
+        return {}
 
 
 class InvalidArgument(ServiceError):
@@ -60,6 +76,24 @@ class FailedPrecondition(ServiceError):
 
 class Unavailable(ServiceError):
     code = pb.UNAVAILABLE
+
+
+class BodyTooLarge(InvalidArgument):
+    """HTTP only: a request body over its route's limit (413; the connection is closed, the rest never read)."""
+
+    http, closes = 413, True
+
+
+class BodyTimeout(InvalidArgument):
+    """HTTP only: a request body that stalled (408; the connection is closed)."""
+
+    http, closes = 408, True
+
+
+class BodyRefused(Unavailable):
+    """A request body still arriving when the server drains (503; the connection is closed)."""
+
+    closes = True
 
 
 _HTTP = {
@@ -91,3 +125,37 @@ def grpc_code(code: int) -> grpc.StatusCode:
 
 def http_status(code: int) -> int:
     return _HTTP.get(code, 500)
+
+
+def http_error(exc: BaseException, where: str = "", metrics=None) -> tuple[int, dict[str, Any], dict[str, str]]:
+    """Any exception as an HTTP answer: (status, body, headers). The body is ``{"error": {"code", "message",
+    "field"}}`` from :func:`to_status`; an INTERNAL error is logged with its traceback under a new error id (``where``
+    says what was being served), which the body carries too (``errorId``), never the exception's text. ``metrics``:
+    counts the error (``blendsplat_errors_total{transport="http"}``)."""
+    status = to_status(exc)
+    if metrics is not None:
+        metrics.errors.labels(pb.Code.Name(status.code), "http").inc()
+    body: dict[str, Any] = {"error": {"code": pb.Code.Name(status.code), "message": status.message,
+                                      "field": status.field}}
+    if status.code == pb.INTERNAL:
+        error_id = uuid.uuid4().hex[:16]
+        log.error("internal error %s%s: %s: %s", error_id, f" ({where})" if where else "", type(exc).__name__,
+                  exc, exc_info=exc)
+        body["error"]["message"] = f"{status.message}; error id {error_id}"
+        body["error"]["errorId"] = error_id
+    if not isinstance(exc, ServiceError):
+        return http_status(status.code), body, {}
+    headers = {**exc.http_headers(), **({"Connection": "close"} if exc.closes else {})}
+    return exc.http or http_status(status.code), body, headers
+
+
+def invalid_request(errors: list[dict[str, Any]]) -> InvalidArgument:
+    """A request that failed validation (FastAPI's, pydantic's error list) as INVALID_ARGUMENT, naming the first
+    field at fault (``iterations``, ``limit``, ``idempotency-key``; the location's kind, body or query, left out)."""
+    first = errors[0] if errors else {}
+    location = [str(part) for part in first.get("loc", ())]
+    field = ".".join(location[1:]) if len(location) > 1 else (location[0] if location else "body")
+    message = str(first.get("msg", "invalid request"))
+    if len(errors) > 1:
+        message += f" (and {len(errors) - 1} more problem{'s' if len(errors) > 2 else ''})"
+    return InvalidArgument(message, field=field)

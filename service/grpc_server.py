@@ -21,7 +21,7 @@ from grpc_reflection.v1alpha import reflection, reflection_pb2
 from blendsplat.v1 import render_pb2 as pb
 from blendsplat.v1 import render_pb2_grpc as pb_grpc
 
-from .auth import Principal, bearer
+from .access.auth import Principal, bearer
 from .engine import Engine
 from .errors import InvalidArgument, grpc_code, to_status
 from .metrics import Metrics
@@ -63,7 +63,7 @@ def unary(method: Callable[..., Awaitable[Reply]]) -> Callable[..., Awaitable[Re
     return rpc
 
 
-# What each RPC needs (service/auth.py); tests/test_auth.py checks every RPC of the proto is here.
+# What each RPC needs (service/access/auth.py); tests/test_auth.py checks every RPC of the proto is here.
 SCOPES = {"RenderStream": "render", "Render": "render", "ListAvatars": "render", "GetAvatar": "render",
           "LoadAvatar": "render", "UnloadAvatar": "avatars:write"}
 

@@ -3,7 +3,7 @@
 The training jobs' side (issue 15): queue depth by state is read from the job database when ``/metrics`` is
 scraped (:meth:`Metrics.watch_jobs`: one grouped count per scrape, so every API replica reports the same numbers);
 uploads, submissions and retention deletions are counted where they happen. Per-attempt durations, attempts lost
-or handed back, heartbeats and iterations per second are the worker's own metrics (``service/worker.py``, served
+or handed back, heartbeats and iterations per second are the worker's own metrics (``service/jobs/worker.py``, served
 on its ``--metrics-port``): the worker is the one that sees them.
 """
 
@@ -22,7 +22,7 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-STAGES = ("queue", "blend", "lbs", "raster", "encode", "total")
+STAGES = ("queue", "blend", "lbs", "raster", "encode", "total")  # the per-frame stages (StageTimings' *_ms fields)
 # Milliseconds-scale frame stages, in seconds.
 _BUCKETS = (0.001, 0.002, 0.004, 0.008, 0.012, 0.016, 0.024, 0.033, 0.05, 0.075, 0.1, 0.15, 0.25, 0.5, 1.0, 2.5)
 

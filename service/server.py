@@ -11,7 +11,7 @@ every stream ends with an UNAVAILABLE status, then both servers stop - all withi
 and gRPC's own grace periods are what is left of it).
 
 Training jobs: the process opens the job database (migrated to head) and the upload folder at start, serves the
-jobs' REST routes (:mod:`service.jobs_api`; submitting and reading jobs needs no worker in this process), and runs
+jobs' REST routes (:mod:`service.jobs.api`; submitting and reading jobs needs no worker in this process), and runs
 the retention sweep at start and every ``RETENTION_INTERVAL_SECONDS``. :func:`up` adds one worker child process
 (``blendsplat up``: the whole single-machine product).
 """
@@ -33,20 +33,21 @@ import uvicorn
 from render_core.bundle import write_bundle
 from render_core.errors import BlendsplatError, FaceModelError
 from render_core.facemodel.open_head import open_head
-from render_core.tools.synth import synth_avatar
+from render_core.synthetic import synth_avatar
 from render_core.train.initialize import demo_albedo, init_avatar
 
-from .auth import ADMIN_TENANT, Access
+from .access.auth import ADMIN_TENANT, Access
+from .access.keys import KeyStore
 from .engine import Engine
 from .errors import ServiceError
 from .grpc_server import GrpcServer
-from .http_app import create_app, stop_reading_bodies
-from .job_events import close_streams
-from .jobs import KeyStore
-from .jobs_api import RETENTION_INTERVAL_SECONDS, Training
+from .http.app import create_app, stop_reading_bodies
+from .jobs.events import close_streams
+from .jobs.training import RETENTION_INTERVAL_SECONDS, Training, open_stores
+from .jobs.webhooks import WebhookDispatcher, load_secret
+from .metrics import Metrics
 from .settings import Settings
-from .store import Owner
-from .webhooks import WebhookDispatcher, load_secret
+from .store import BundleStore, Owner
 
 log = logging.getLogger(__name__)
 DEMO_ID = "demo"
@@ -86,12 +87,13 @@ class _Uvicorn(uvicorn.Server):
 class Service:
     def __init__(self, settings: Settings):
         self.settings = settings
-        self.engine = Engine(settings)
+        self.metrics = Metrics()
+        self.engine: Engine | None = None  # built complete at start: its access needs the job database
         self.grpc: GrpcServer | None = None
         self.http: _Uvicorn | None = None
         self.app = None  # the HTTP app (its state carries readiness reasons and the drain's body refusal)
         self.training: Training | None = None
-        self.webhooks: WebhookDispatcher | None = None  # sends job webhooks (service/webhooks.py)
+        self.webhooks: WebhookDispatcher | None = None  # sends job webhooks (service/jobs/webhooks.py)
         self._retention: asyncio.Task | None = None
         self._sweep: asyncio.Future | None = None  # the sweep in its thread (cancelling the task does not stop it)
         self.stopped = asyncio.Event()
@@ -108,14 +110,15 @@ class Service:
         return self.http.servers[0].sockets[0].getsockname()[1]
 
     async def start(self) -> None:
-        s, engine = self.settings, self.engine
-        self.training = await asyncio.to_thread(Training.open, s, engine.metrics)
-        engine.access = Access(s, KeyStore(self.training.jobs.engine),
-                               on_limit_failure=engine.metrics.limit_failures.inc)
-        engine.access.usage = [engine.store.tenant_bytes, self.training.uploads.tenant_bytes]
-        await asyncio.to_thread(engine.access.bootstrap)
-        self.training.access = engine.access
-        self.training.owner_of_avatar = engine.store.owner_if_exists
+        s = self.settings
+        jobs, uploads = await asyncio.to_thread(open_stores, s)  # the job database (migrated) and the upload folder
+        store = BundleStore(s.bundle_dir)
+        access = Access(s, KeyStore(jobs.engine), on_limit_failure=self.metrics.limit_failures.inc,
+                        usage=[store.tenant_bytes, uploads.tenant_bytes])
+        self.training = Training(s, jobs, uploads, access=access, owner_of_avatar=store.owner_if_exists,
+                                 metrics=self.metrics)
+        self.engine = engine = Engine(s, self.metrics, access=access, store=store)
+        await asyncio.to_thread(access.bootstrap)
         self.webhooks = WebhookDispatcher(s, self.training.jobs, await asyncio.to_thread(load_secret, s))
         self.webhooks.start()
         await engine.start()
@@ -198,7 +201,9 @@ class Service:
             self._retention.cancel()
         # the dispatcher stops beside the drain: an attempt in flight gets a second, else is retried later
         webhooks_stopped = asyncio.ensure_future(self.webhooks.stop()) if self.webhooks is not None else None
-        self.engine.begin_drain()
+        engine = self.engine
+        if engine is not None:
+            engine.begin_drain()
         if self.grpc:
             await self.grpc.set_serving(False)
         deadline = time.monotonic() + s.shutdown_delay_seconds + s.drain_seconds
@@ -210,7 +215,8 @@ class Service:
             stop_reading_bodies(self.app)  # uploads still arriving: 503, their temp files removed
             close_streams(self.app)  # job event streams end now (clients reconnect with Last-Event-ID)
         # The streams get the drain time but a slice kept for the servers to close their connections.
-        await self.engine.drain(max(0.0, deadline - time.monotonic() - min(1.0, s.drain_seconds / 4)))
+        if engine is not None:
+            await engine.drain(max(0.0, deadline - time.monotonic() - min(1.0, s.drain_seconds / 4)))
         await asyncio.sleep(0.05)  # let the final statuses go out
 
         def left() -> float:  # never 0: uvicorn reads 0 as "wait for ever"
@@ -222,7 +228,8 @@ class Service:
             self.http.config.timeout_graceful_shutdown = left()
             self.http.should_exit = True
             await self._http_task
-        await self.engine.close()
+        if engine is not None:
+            await engine.close()
         if self._sweep is not None:
             with contextlib.suppress(Exception):
                 await self._sweep  # a sweep in progress finishes before its stores close
@@ -230,7 +237,8 @@ class Service:
             await webhooks_stopped
         if self.training is not None:
             await asyncio.to_thread(self.training.close)
-        await asyncio.to_thread(self.engine.access.close)  # gives back this replica's stream leases at once
+        if engine is not None:
+            await asyncio.to_thread(engine.access.close)  # gives back this replica's stream leases at once
         self.stopped.set()
         log.info("stopped")
 

@@ -6,11 +6,16 @@ validated at start-up, so a bad deployment fails fast with the variable named.
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import Literal
 
 from pydantic import Field, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
+
+# Every form of API key the service accepts (service/access/keys.py): printable ASCII without spaces, 16 to 512
+# characters. Its own keys (bsk_<id>_<secret>) are of this form; so must an admin key made elsewhere be.
+API_KEY_PATTERN = re.compile(r"^[!-~]{16,512}$")
 
 
 class Settings(BaseSettings):
@@ -65,7 +70,7 @@ class Settings(BaseSettings):
     heartbeat_seconds: float = Field(5.0, gt=0, description="worker heartbeat and progress interval")
     job_max_attempts: int = Field(3, ge=1, le=100, description="attempts of a job before it fails")
 
-    # Access: API keys, tenants, TLS, browsers (service/auth.py).
+    # Access: API keys, tenants, TLS, browsers (service/access/auth.py).
     auth: Literal["keys", "off"] = Field(
         "keys", description="keys: every API route and RPC needs an API key (health, metrics and the API docs stay "
                             "open); off: no authentication, for a trusted network only (a warning at start)")
@@ -89,7 +94,7 @@ class Settings(BaseSettings):
     tenant_storage_bytes: int = Field(20 << 30, ge=1 << 20, description="storage quota of a tenant (its bundles "
                                                                         "and uploads)")
 
-    # Job events and webhooks (service/job_events.py, service/webhooks.py).
+    # Job events and webhooks (service/jobs/events.py, service/jobs/webhooks.py).
     events_max_streams: int = Field(100, ge=1, description="concurrent job event streams (GET /v1/jobs/{id}/events) "
                                                            "per process; more get 429")
     events_max_seconds: float = Field(3600.0, gt=0, description="an event stream ends after this long (the client "
@@ -128,9 +133,7 @@ class Settings(BaseSettings):
     @field_validator("admin_key")
     @classmethod
     def _admin_key(cls, value: str | None) -> str | None:
-        from .jobs.keys import parse_token
-
-        if value is not None and parse_token(value) is None:
+        if value is not None and not API_KEY_PATTERN.match(value):
             raise ValueError("an admin key is bsk_<10 hex>_<43 URL-safe base64 characters> (`blendsplat keys create`) "
                              "or 16 to 512 printable characters without spaces (e.g. `openssl rand -hex 32`)")
         return value

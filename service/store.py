@@ -39,7 +39,7 @@ ID_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
 SUFFIX = ".bundle"
 STAGED_PREFIX = ".upload-"  # <root>/.upload-XXXX.tmp: an upload being received or validated
 RECORD = ".verified"  # <id>.bundle.verified: what the store verified (never ends in SUFFIX, so never an id)
-OWNER = ".owner"  # <id>.bundle.owner: {"tenant": ..., "public": ...} (service/auth.py's ownership rules)
+OWNER = ".owner"  # <id>.bundle.owner: {"tenant": ..., "public": ...} (service/access/auth.py's ownership rules)
 _MAX_HEADER = 100 << 20  # as the bundle reader's limit: a longer header is not a bundle
 
 

@@ -226,6 +226,46 @@ def test_adapter_nan_output_is_a_frame_error_and_never_reaches_the_renderer(serv
     assert seen and all(seen)
 
 
+def test_adapter_ownership_is_the_engines_rule(server, setup, caplog):
+    """Who may use, replace and delete an adapter is decided by the engine (both transports call it): a tenant's
+    adapter is its own; the deployment's (no tenant) every key may use and only admin keys change; another
+    tenant's is refused before its upload is read, and in a session that names it. Changes are audited."""
+    from service.access.auth import PermissionDenied, Principal
+
+    engine, (_, _, result, data) = server.engine, setup
+    alice = Principal("ka", "alice", frozenset({"render", "avatars:write"}))
+    bob = Principal("kb", "bob", frozenset({"render", "avatars:write"}))
+    manifest = json.dumps({k: v for k, v in result.manifest.to_dict().items() if k != "id"}).encode()
+
+    async def upload():
+        return data, manifest
+
+    async def never():
+        raise AssertionError("the upload of a refused write was read")
+
+    with caplog.at_level("INFO", logger="blendsplat.audit"):
+        assert server.call(engine.put_adapter("alices", upload, alice))["tenant"] == "alice"
+    assert "adapter.put alices by key=ka tenant=alice" in caplog.text
+    for adapter_id, who in (("alices", bob), (ADAPTER, alice)):  # another tenant's; the deployment's
+        with pytest.raises(PermissionDenied):
+            server.call(engine.put_adapter(adapter_id, never, who))
+        with pytest.raises(PermissionDenied):
+            engine.delete_adapter(adapter_id, who)
+    with pytest.raises(PermissionDenied):
+        engine.adapter_info("alices", bob)
+    assert engine.adapter_info(ADAPTER, bob)["tenant"] is None
+    deployments = {a["id"] for a in engine.list_adapters() if a["tenant"] is None}
+    assert ADAPTER in deployments
+    assert {a["id"] for a in engine.list_adapters(bob)} == deployments
+    assert {a["id"] for a in engine.list_adapters(alice)} == deployments | {"alices"}
+    config = pb.SessionConfig(avatar_id="demo", width=SIZE, height=SIZE, adapter="alices")  # a public avatar
+    with pytest.raises(PermissionDenied, match="adapter 'alices'"):
+        server.call(engine.open(config, "grpc", bob))
+    with caplog.at_level("INFO", logger="blendsplat.audit"):
+        assert engine.delete_adapter("alices", alice)["id"] == "alices"
+    assert "adapter.delete alices by key=ka tenant=alice" in caplog.text
+
+
 def test_smoothing_filters_the_coefficients_of_a_session(server, setup):
     """One Euro smoothing in open: a step in the input reaches the avatar filtered as the One Euro filter computes
     it from the frames' client times."""

@@ -1,4 +1,4 @@
-"""Uploaded archives (service.archive): the kinds accepted, where the dataset may sit, and every hostile archive
+"""Uploaded archives (service.jobs.archive): the kinds accepted, where the dataset may sit, and every hostile archive
 refused with its reason before anything is written, leaving nothing behind."""
 
 from __future__ import annotations
@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 
 from render_core.data import Tracking, validate_dataset, write_dataset
-from service.archive import ArchiveError, ArchiveLimits, detect_kind, extract_archive, inspect_archive
 from service.errors import InvalidArgument
+from service.jobs.archive import ArchiveError, ArchiveLimits, detect_kind, extract_archive, inspect_archive
 
 N, H, W = 4, 32, 32
 

@@ -25,11 +25,11 @@ from blendsplat.v1 import render_pb2 as pb
 from blendsplat.v1 import render_pb2_grpc as pb_grpc
 from render_core.bundle import write_bundle
 from render_core.tools.synth import synth_avatar
-from service.auth import CACHE_SECONDS
+from service.access.auth import CACHE_SECONDS
+from service.access.http import OPEN_PATHS
+from service.access.keys import SCOPES, KeyStore
 from service.grpc_server import SCOPES as RPC_SCOPES
-from service.http_app import routes as app_routes
-from service.http_auth import OPEN_PATHS
-from service.jobs import SCOPES, KeyStore
+from service.http.app import routes as app_routes
 
 SERVICE = pb.DESCRIPTOR.services_by_name["RenderService"]
 QUOTA = 1 << 20  # tenant_storage_bytes of the module's server
@@ -75,7 +75,7 @@ def bundle_bytes(tmp_path, seed: int = 1, gaussians: int = 300) -> bytes:
 
 
 def route_scope(route: APIRoute | APIWebSocketRoute) -> str | None:
-    """The scope a route's key dependency asks for (service.http_auth.need names it), None when it has none."""
+    """The scope a route's key dependency asks for (service.access.http.need names it), None when it has none."""
     for dependency in route.dependant.dependencies:
         name = getattr(dependency.call, "__name__", "")
         if name.startswith("needs_"):
@@ -326,7 +326,7 @@ def test_the_admin_key_is_created_once_private_and_reused(tmp_path):
 
 
 def test_auth_off_is_loud(tmp_path, caplog):
-    with caplog.at_level(logging.WARNING, logger="service.auth"):
+    with caplog.at_level(logging.WARNING, logger="service.access.auth"):
         s = LiveServer(tmp_path / "data", auth="off")
     try:
         assert any("authentication is OFF" in r.getMessage() for r in caplog.records)

@@ -13,7 +13,7 @@ from websockets.sync.client import connect
 
 from blendsplat.v1 import render_pb2 as pb
 from blendsplat.v1 import render_pb2_grpc as pb_grpc
-from service.http_auth import OPEN_PATHS
+from service.access.http import OPEN_PATHS
 
 
 @pytest.fixture(scope="module")

@@ -286,7 +286,7 @@ def test_smoke_commands_and_variables_are_real():
 
 
 def http_routes() -> set[str]:
-    from service.http_app import create_app
+    from service.http.app import create_app
     from service.settings import Settings
 
     app = create_app(SimpleNamespace(settings=Settings()), SimpleNamespace())
@@ -448,7 +448,7 @@ def test_migrate_command_upgrades_the_job_database(tmp_path, capsys):
     from sqlalchemy import create_engine
 
     from service.cli import main
-    from service.jobs.migrations import current, head
+    from service.db import current, head
 
     url = f"sqlite:///{tmp_path / 'jobs.db'}"
     assert main(["migrate", "--jobs-url", url]) == 0
@@ -544,16 +544,16 @@ def _mounts(tmp_path: Path, fstype: str) -> Path:
 
 
 def test_sqlite_on_a_network_filesystem_is_warned_about(tmp_path, caplog):
-    from service.jobs.netfs import filesystem_type, warn_if_sqlite_on_network_filesystem
+    from service.db import filesystem_type, warn_if_sqlite_on_network_filesystem
 
     mounts = _mounts(tmp_path, "nfs4")
     db = tmp_path / "shared space" / "data" / "jobs.db"  # not created yet
     assert filesystem_type(db, mounts) == "nfs4"
-    with caplog.at_level(logging.WARNING, logger="service.jobs.netfs"):
+    with caplog.at_level(logging.WARNING, logger="service.db"):
         assert warn_if_sqlite_on_network_filesystem(f"sqlite:///{db}", mounts) == "nfs4"
     assert "network filesystem (nfs4)" in caplog.text and "PostgreSQL" in caplog.text
     caplog.clear()
-    with caplog.at_level(logging.WARNING, logger="service.jobs.netfs"):
+    with caplog.at_level(logging.WARNING, logger="service.db"):
         assert warn_if_sqlite_on_network_filesystem(f"sqlite:///{tmp_path / 'jobs.db'}", mounts) is None
         assert warn_if_sqlite_on_network_filesystem("postgresql+psycopg://u@h/db", mounts) is None
         assert warn_if_sqlite_on_network_filesystem("sqlite://", mounts) is None
@@ -562,14 +562,13 @@ def test_sqlite_on_a_network_filesystem_is_warned_about(tmp_path, caplog):
 
 def test_job_store_open_warns_on_a_network_filesystem(tmp_path, monkeypatch, caplog):
     """The check runs where serve, up and worker open the job database."""
-    from service.jobs import netfs
+    from service import db
     from service.jobs.store import JobStore
 
     mounts = _mounts(tmp_path, "cifs")
-    real = netfs.warn_if_sqlite_on_network_filesystem
-    monkeypatch.setattr("service.jobs.store.warn_if_sqlite_on_network_filesystem",
-                        lambda url: real(url, mounts))
-    with caplog.at_level(logging.WARNING, logger="service.jobs.netfs"):
+    real = db.warn_if_sqlite_on_network_filesystem
+    monkeypatch.setattr("service.db.warn_if_sqlite_on_network_filesystem", lambda url: real(url, mounts))
+    with caplog.at_level(logging.WARNING, logger="service.db"):
         JobStore.open(f"sqlite:///{tmp_path / 'shared space' / 'jobs.db'}").close()
     assert "network filesystem (cifs)" in caplog.text
 

@@ -244,7 +244,7 @@ def test_an_unexpected_exception_is_a_typed_500_with_a_logged_error_id(live_serv
         raise ZeroDivisionError("secret internals")
 
     monkeypatch.setattr(live_server.engine, "render_once", broken)
-    with caplog.at_level(logging.ERROR, logger="service.http_app"):
+    with caplog.at_level(logging.ERROR, logger="service.errors"):
         r = httpx.post(live_server.http_url + "/v1/render", json={"avatarId": "demo"}, timeout=30)
     assert r.status_code == 500 and r.headers["content-type"] == "application/json"
     error = r.json()["error"]

@@ -1,4 +1,4 @@
-"""A job's server-sent events (GET /v1/jobs/{id}/events, service/job_events.py) from a real service (uvicorn on a
+"""A job's server-sent events (GET /v1/jobs/{id}/events, service/jobs/events.py) from a real service (uvicorn on a
 free loopback port, the job database a SQLite file): events in order with their ids, resume with Last-Event-ID
 (and ?after=), live events, a finished job's stream replays then closes, keep-alives, the lifetime and
 per-process bounds, the JSON 404, and shutdown closing open streams at once. The events are made through the job
@@ -17,8 +17,8 @@ from pathlib import Path
 import httpx
 import pytest
 
-from service.job_events import streams
 from service.jobs import JobStore
+from service.jobs.events import streams
 from service.server import Service
 from service.settings import Settings
 

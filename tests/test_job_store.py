@@ -1,4 +1,4 @@
-"""The training queue's job store (service/jobs), each test against both SQLite (a file) and PostgreSQL.
+"""The training queue's job store (service/jobs/store.py), each test against both SQLite (a file) and PostgreSQL.
 
 PostgreSQL: 127.0.0.1:5432 with trust auth (user postgres or root); every test creates a database of its own
 (``blendsplat_test_<hex>``) through the ``test`` database and drops it afterwards. Unreachable: those variants skip.
@@ -16,18 +16,11 @@ import pytest
 from conftest import postgres_database
 from sqlalchemy import func, select
 
+import service.access.keys  # noqa: F401 - the api_keys table, part of the schema the migrations own
+from service.db import Base, current, default_url, head, make_engine, migrate
 from service.errors import FailedPrecondition, InvalidArgument, NotFound
-from service.jobs import (
-    EventKind,
-    IdempotencyConflict,
-    JobState,
-    JobStore,
-    default_url,
-    make_engine,
-    migrate,
-)
-from service.jobs.migrations import current, head
-from service.jobs.models import Base, JobEventRecord
+from service.jobs import EventKind, IdempotencyConflict, JobState, JobStore
+from service.jobs.models import JobEventRecord
 
 SPEC = {"upload_id": "up_1", "preset": "tiny", "iterations": 100, "avatar_id": "ada", "resolution": 256}
 
@@ -80,6 +73,77 @@ def test_alembic_migrates_an_empty_database_to_head_and_the_models_match(url):
                                  "ON jobs (coalesce(tenant, ''), idempotency_key)")
     finally:
         engine.dispose()
+
+
+# What the code before the one JobSpec stored (POST /v1/jobs wrote JobRequest.model_dump(): these six fields, and
+# webhook_url only when given; jobs submitted to the store directly, as the worker's tests do, also carried the
+# worker's own keys).
+OLD_SPECS = {
+    "api": {"upload_id": "upl_" + "a" * 22, "preset": "tiny", "iterations": 30, "avatar_id": "ada",
+            "resolution": 64, "seed": 5},
+    "api-defaults": {"upload_id": "upl_" + "b" * 22, "preset": "paper", "iterations": None, "avatar_id": "bob",
+                     "resolution": None, "seed": 0},
+    "api-webhook": {"upload_id": "upl_" + "c" * 22, "preset": "tiny", "iterations": None, "avatar_id": "cy",
+                    "resolution": None, "seed": 0, "webhook_url": "https://hooks.example.com/blendsplat"},
+    "worker-options": {"upload_id": "upl_" + "d" * 22, "preset": "tiny", "iterations": 40, "avatar_id": "dee",
+                       "resolution": None, "seed": 3, "checkpoint_every": 4, "gaussians": 400, "mouth": 40},
+}
+OLD_HEAD = "0003"  # the newest revision before the one JobSpec: its revision id never changes
+
+
+def test_a_job_database_written_before_the_one_job_spec_upgrades_and_its_queued_jobs_validate(url):
+    """A database at the old head with queued jobs inserted as rows (the old code's spec JSON, request hash and
+    state event, no ORM model involved) opens (migrated to head), and every queued job's spec validates against
+    the one JobSpec the worker trains with, unchanged: re-serialised it is the stored spec, so the idempotency hash
+    of the same request still matches (a retried POST replays the job instead of a 409)."""
+    import hashlib
+    import json
+
+    from sqlalchemy import MetaData, Table
+
+    from service.jobs.schemas import JobSpec
+
+    migrate(url, OLD_HEAD)
+    engine = make_engine(url)
+    try:
+        assert current(engine) == OLD_HEAD
+        tables = MetaData()
+        with warnings.catch_warnings():  # SQLite cannot reflect the expression index (not needed to insert)
+            warnings.filterwarnings("ignore", message=".*expression-based index")
+            jobs, events = (Table(name, tables, autoload_with=engine) for name in ("jobs", "job_events"))
+        now = datetime.now(UTC)
+        if engine.dialect.name == "sqlite":
+            now = now.replace(tzinfo=None)  # the old store wrote SQLite's UTC wall time
+        with engine.begin() as connection:
+            for i, (key, spec) in enumerate(OLD_SPECS.items()):
+                digest = hashlib.sha256(json.dumps(spec, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
+                connection.execute(jobs.insert().values(
+                    id=f"job_old{i}", tenant="acme", state="queued", spec=spec, idempotency_key=key,
+                    request_hash=digest, attempts=0, max_attempts=3, cancel_requested=False,
+                    total_iterations=spec["iterations"], created_at=now + timedelta(seconds=i),
+                    updated_at=now + timedelta(seconds=i)))
+                connection.execute(events.insert().values(
+                    job_id=f"job_old{i}", kind="state", data={"state": "queued", "previous": None, "attempts": 0},
+                    created_at=now))
+    finally:
+        engine.dispose()
+
+    with JobStore.open(url) as store:
+        assert current(store.engine) == head()
+        queued, _ = store.list(state=JobState.QUEUED)
+        assert sorted(j.id for j in queued) == [f"job_old{i}" for i in range(len(OLD_SPECS))]
+        for job in queued:
+            spec = JobSpec.parse(job.spec)
+            assert spec.stored() == job.spec == OLD_SPECS[job.idempotency_key]
+            assert _event_states(store, job.id) == ["queued"]
+            replay = store.submit(spec.stored(), tenant="acme", idempotency_key=job.idempotency_key)
+            assert replay.id == job.id  # the same request body: the first job, not a conflict
+        api = JobSpec.parse(OLD_SPECS["api"])
+        assert (api.resolution, api.iterations, api.seed, api.preset_overrides()) == (64, 30, 5, {})
+        assert JobSpec.parse(OLD_SPECS["worker-options"]).preset_overrides() == {
+            "checkpoint_every": 4, "gaussians": 400, "mouth": 40}
+        claimed = store.claim("w1", 30)  # the oldest queued job is claimable as before
+        assert claimed is not None and claimed.id == "job_old0" and claimed.spec == OLD_SPECS["api"]
 
 
 # ---- submit, get, list ----

@@ -1,4 +1,4 @@
-"""The training jobs' REST API (service/jobs_api.py) against real `blendsplat serve` processes: the embedded SQLite
+"""The training jobs' REST API (service/jobs/api.py) against real `blendsplat serve` processes: the embedded SQLite
 job database and PostgreSQL (127.0.0.1:5432, a database of the test module's own, dropped after; skipped with the
 reason when unreachable). Uploads (tar.gz, zip, hostile, too large), jobs (submit, read, pages, state filter,
 Idempotency-Key, cancel, artefacts), real deletion (files and rows gone), restart and retention at start, metrics;
@@ -462,7 +462,7 @@ def test_the_openapi_documents_the_routes_and_models(server):
     assert "delete" in paths["/v1/avatars/{avatar_id}"] and "delete" in paths["/v1/jobs/{job_id}"]
     body = paths["/v1/uploads"]["post"]["requestBody"]["content"]["multipart/form-data"]["schema"]
     assert body["required"] == ["file"] and "413" in paths["/v1/uploads"]["post"]["responses"]
-    request = spec["components"]["schemas"]["JobRequest"]
+    request = spec["components"]["schemas"]["JobSpec"]
     assert request["properties"]["avatar_id"]["pattern"] and request["required"] == ["upload_id", "avatar_id"]
 
 
@@ -504,11 +504,15 @@ def test_a_restart_loses_no_job_and_retention_runs_at_start(tmp_path, archives):
 def test_the_sweep_removes_orphaned_work_folders_and_leftovers(tmp_path):
     """In process: a work folder whose job row is gone (a worker wrote after the job was deleted) is removed once
     untouched for a minute; a job's own folder and fresh orphans are kept; unfinished deletions are cleaned."""
-    from service.jobs_api import Training
+    from service.access.auth import Access
+    from service.access.keys import KeyStore
+    from service.jobs.training import Training, open_stores
     from service.settings import Settings
 
     settings = Settings(data_dir=tmp_path / "data", jobs_url=f"sqlite:///{tmp_path / 'data' / 'jobs.db'}")
-    training = Training.open(settings)
+    jobs, uploads = open_stores(settings)
+    training = Training(settings, jobs, uploads, access=Access(settings, KeyStore(jobs.engine)),
+                        owner_of_avatar=lambda avatar_id: None)
     try:
         live = training.jobs.submit({"upload_id": "upl_" + "a" * 20, "avatar_id": "a"}).id
         work = settings.work_dir

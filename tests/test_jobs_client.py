@@ -1,4 +1,4 @@
-"""`blendsplat jobs` (service/jobs_client.py), the training jobs' command-line client, against a real `blendsplat up`
+"""`blendsplat jobs` (service/jobs/client.py), the training jobs' command-line client, against a real `blendsplat up`
 (the service and one worker child, a temporary data dir, one per module): submit a dataset folder and wait for it,
 submit an archive, list, show, Ctrl-C while waiting, cancel then wait, delete, a wrong server, HTTP errors, no
 duplicate job when the create POST is retried. The event stream's client side (ordered events, resume with
@@ -23,10 +23,10 @@ from pathlib import Path
 import httpx
 import pytest
 
-from service import jobs_client
 from service.cli import main as blendsplat
-from service.jobs_cli import Watch
-from service.jobs_client import ApiError, ConnectionFailed, Event, JobsClient
+from service.jobs import client as jobs_client
+from service.jobs.client import ApiError, ConnectionFailed, Event, JobsClient
+from service.jobs.display import Watch
 
 ROOT = Path(__file__).resolve().parents[1]
 READY = re.compile(r"ready: gRPC on port (\d+), HTTP on port (\d+)")

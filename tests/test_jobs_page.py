@@ -231,7 +231,7 @@ def _png(width: int = 8, height: int = 8, rgb: tuple[int, int, int] = (200, 120,
 
 
 class ScriptedJobs:
-    """One job and its events, served as service/jobs_api.py serves them; the events stream is scripted:
+    """One job and its events, served as service/jobs/api.py serves them; the events stream is scripted:
     connection 1 sends events 1-3 in odd pieces and drops; connection 2 (which must resume after 3) sends 4-6 with
     CRLF line ends, waits for the page's cancel, sends the terminal state event 7 and closes; later connections
     replay what comes after their Last-Event-ID, then close (as for a finished job). A second job's events answer

@@ -1,4 +1,4 @@
-"""Per-key limits (service/limits.py): counted in the process, or shared by every replica through a real Redis
+"""Per-key limits (service/access/limits.py): counted in the process, or shared by every replica through a real Redis
 (127.0.0.1:6379; the Redis tests skip, saying why, when it is unreachable)."""
 
 from __future__ import annotations
@@ -15,8 +15,8 @@ from conftest import LiveServer
 
 from blendsplat.v1 import render_pb2 as pb
 from blendsplat.v1 import render_pb2_grpc as pb_grpc
-from service.jobs import KeyStore
-from service.limits import LocalLimits, RateLimited, RedisLimits, no_release
+from service.access.keys import KeyStore
+from service.access.limits import LocalLimits, RateLimited, RedisLimits, no_release
 
 REDIS_URL = "redis://127.0.0.1:6379/0"
 

@@ -202,7 +202,7 @@ BAD_FRAMES = [
     ("NaN rotation", pb.FrameParams(index=7, joints={"jaw": pb.Rotation(values=[float("nan"), 0, 0])}),
      "joints.jaw"),
     ("eyelids", pb.FrameParams(index=7, eyelids=[0.5]), "eyelids"),
-    ("camera preset", pb.FrameParams(index=7, camera=pb.Camera(preset="behind")), "camera"),
+    ("camera preset", pb.FrameParams(index=7, camera=pb.Camera(preset="behind")), "camera.preset"),
     ("camera K", pb.FrameParams(index=7, camera=pb.Camera(opencv=pb.OpenCVCamera(k=[1, 2]))), "camera.opencv.k"),
     ("background", pb.FrameParams(index=7, background=pb.Color(r=2.0)), "background"),
 ]
@@ -445,23 +445,30 @@ def test_codec_settings_are_invalid_argument_naming_the_field(live_server, stub)
 
 
 def test_transports_call_only_the_engine():
-    """The gRPC and HTTP adapters reach the avatar cache and the bundle store only through Engine methods."""
+    """The gRPC and HTTP adapters reach the avatar cache, the bundle store and the adapter store only through
+    Engine methods (which apply who may do what)."""
     import ast
+    import importlib
     import inspect
+    import pkgutil
 
     import service.grpc_server
-    import service.http_app
+    import service.http
     from service.engine import Engine
 
     public = {name for name in dir(Engine) if not name.startswith("_")}
-    for module in (service.grpc_server, service.http_app):
+    http = [importlib.import_module(f"service.http.{m.name}") for m in pkgutil.iter_modules(service.http.__path__)]
+    assert len(http) >= 6, http
+    for module in (service.grpc_server, *http):
         tree = ast.parse(inspect.getsource(module))
         for node in ast.walk(tree):
             if isinstance(node, ast.ImportFrom):
                 assert node.module not in ("cache", "store", "service.cache", "service.store"), module.__name__
             if isinstance(node, ast.Attribute):
-                assert node.attr not in ("cache", "store"), f"{module.__name__}:{node.lineno} uses .{node.attr}"
-    for method in ("load", "unload", "replace", "list_avatars", "avatar_info", "readiness", "render_once", "open"):
+                assert node.attr not in ("cache", "store", "adapters"), \
+                    f"{module.__name__}:{node.lineno} uses .{node.attr}"
+    for method in ("load", "unload", "replace", "list_avatars", "avatar_info", "readiness", "render_once", "open",
+                   "list_adapters", "adapter_info", "put_adapter", "delete_adapter"):
         assert method in public, method
 
 

@@ -24,7 +24,8 @@ from render_core.train import get_preset
 from render_core.train.trainer import raster_step
 
 CLIS = {Path(render_core.__file__).parent / "tools" / "cli.py",
-        *(Path(service.__file__).parent / name for name in ("cli.py", "jobs_cli.py", "keys_cli.py"))}
+        *(Path(service.__file__).parent / name
+          for name in ("cli.py", "jobs/cli.py", "jobs/display.py", "access/keys_cli.py"))}
 
 
 @pytest.mark.parametrize("call,field", [

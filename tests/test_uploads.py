@@ -1,4 +1,4 @@
-"""The upload store (service.uploads): an archive streamed in, checked, extracted, validated and published by one
+"""The upload store (service.jobs.uploads): an archive streamed in, checked, extracted, validated and published by one
 rename; every refusal (too large, hostile archive, invalid dataset, client gone, cancelled) leaves nothing; real
 deletion, retention and start-up cleaning."""
 
@@ -15,10 +15,10 @@ import pytest
 from test_archive import HOSTILE, make_dataset, tar_archive, zip_archive
 
 from render_core.data import validate_dataset
-from service import uploads as uploads_module
-from service.archive import ArchiveError, ArchiveLimits
 from service.errors import InvalidArgument, NotFound
-from service.uploads import ID_PATTERN, InvalidDataset, UploadStore, UploadTooLarge
+from service.jobs import uploads as uploads_module
+from service.jobs.archive import ArchiveError, ArchiveLimits
+from service.jobs.uploads import ID_PATTERN, InvalidDataset, UploadStore, UploadTooLarge
 
 
 @pytest.fixture(scope="module")
@@ -78,7 +78,7 @@ def test_an_upload_is_published_with_its_record_and_no_archive(store, tmp_path, 
     assert {p.relative_to(folder).as_posix(): p.read_bytes() for p in folder.rglob("*") if p.is_file()} == dataset
     record = json.loads((store.root / upload.id / "upload.json").read_text())
     assert set(record) == {"id", "created_at", "size", "sha256", "frames", "width", "height", "face_model",
-                           "filename", "archive", "tenant"}  # tenant: the owner (service/auth.py)
+                           "filename", "archive", "tenant"}  # tenant: the owner (service/access/auth.py)
     assert record["id"] == upload.id and record["created_at"].endswith("Z")
     assert store.get(upload.id) == upload and store.list() == [upload]
 

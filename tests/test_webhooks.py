@@ -1,10 +1,9 @@
-"""Job webhooks (service/webhooks.py, the webhook_deliveries outbox in service/jobs): a real receiver (http.server on
-a free loopback port, in a thread) checks every request's Standard Webhooks signature with its own few lines of
-HMAC, answers 500 to the first attempts and then 2xx, and counts what it accepted. Through a real service (the
-REST API stores webhook_url, the service's dispatcher delivers, the job shows its deliveries), and with the
-dispatcher alone: a wrong secret, the attempt and time bounds, durability across a dispatcher restart, and claims
-that never hand one delivery to two dispatchers (SQLite and PostgreSQL).
-"""
+"""Job webhooks (service/jobs/webhooks.py, the webhook_deliveries outbox in service/jobs/outbox.py): a real receiver
+(http.server on a free loopback port, in a thread) checks every request's Standard Webhooks signature with its own
+few lines of HMAC, answers 500 to the first attempts and then 2xx, and counts what it accepted. Through a real
+service (the REST API stores webhook_url, the service's dispatcher delivers, the job shows its deliveries), and with
+the dispatcher alone: a wrong secret, the attempt and time bounds, durability across a dispatcher restart, and
+claims that never hand one delivery to two dispatchers (SQLite and PostgreSQL)."""
 
 from __future__ import annotations
 
@@ -28,10 +27,11 @@ from conftest import postgres_database
 from test_archive import make_dataset, tar_archive
 from test_job_events import Server
 
-from service.jobs import JobStore, default_url
+from service.db import default_url
+from service.jobs import JobStore
 from service.jobs.models import DeliveryStatus
+from service.jobs.webhooks import WebhookDispatcher, load_secret, retry_delay, sign
 from service.settings import Settings
-from service.webhooks import WebhookDispatcher, load_secret, retry_delay, sign
 
 SECRET = "whsec_" + base64.b64encode(b"a test key of thirty-two bytes!!").decode()
 OTHER_SECRET = "whsec_" + base64.b64encode(b"another key, not the service's").decode()
@@ -467,7 +467,7 @@ def test_a_webhook_goes_to_the_address_that_was_checked(tmp_path, monkeypatch):
 
 
 def test_pinned_urls_keep_port_path_and_bracket_ipv6():
-    from service.webhooks import _pinned
+    from service.jobs.webhooks import _pinned
 
     assert _pinned("http://user:pw@hooks.example.com/x?y=1", "2606:2800:220:1::1") == (
         "http://user:pw@[2606:2800:220:1::1]/x?y=1", "hooks.example.com", {})

@@ -1,4 +1,4 @@
-"""The training worker (service/worker.py) against real parts: a SQLite job database, a real upload (a tar.gz of a
+"""The training worker (service/jobs/worker.py) against real parts: a SQLite job database, a real upload (a tar.gz of a
 synthetic dataset received by the UploadStore), the Trainer, the bundle store, and worker processes killed with
 SIGKILL and stopped with SIGTERM.
 
@@ -18,23 +18,29 @@ import subprocess
 import sys
 import threading
 import time
+import typing
 import urllib.request
 from datetime import UTC, datetime
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 from safetensors.torch import load_file
 
 from render_core import read_bundle
 from render_core.bundle import read_manifest
+from render_core.data import read_dataset
+from render_core.train.presets import PRESETS
 from render_core.train.trainer import Trainer, last_checkpoint
 from service.errors import InvalidArgument
 from service.jobs import EventKind, JobState, JobStore
+from service.jobs.resize import dataset_at, resample, scaled_intrinsics, training_size
+from service.jobs.schemas import JobSpec
+from service.jobs.uploads import UploadStore
+from service.jobs.worker import Worker, add_arguments
 from service.settings import Settings
 from service.store import BundleStore
-from service.uploads import UploadStore
-from service.worker import JobSpec, Worker, add_arguments
 
 ROOT = Path(__file__).resolve().parents[1]
 SPEC = {"preset": "tiny", "iterations": 40, "seed": 3, "resolution": None, "checkpoint_every": 4, "gaussians": 400,
@@ -89,12 +95,12 @@ def wait_for(predicate, timeout: float, what: str, interval: float = 0.05):
 
 
 def start_worker(settings: Settings, tmp_path: Path, worker_id: str, *extra: str) -> tuple[subprocess.Popen, Path]:
-    """``python -m service.worker`` as a real process; its log file."""
+    """``python -m service.jobs.worker`` as a real process; its log file."""
     env = {**os.environ, "BLENDSPLAT_JOB_LEASE_SECONDS": str(settings.job_lease_seconds),
            "BLENDSPLAT_HEARTBEAT_SECONDS": str(settings.heartbeat_seconds), "PYTHONUNBUFFERED": "1"}
     logfile = tmp_path / f"{worker_id}.log"
     with open(logfile, "wb") as out:
-        command = [sys.executable, "-m", "service.worker", "--data-dir", str(settings.data_dir),
+        command = [sys.executable, "-m", "service.jobs.worker", "--data-dir", str(settings.data_dir),
                    "--jobs-url", settings.jobs_database_url, "--worker-id", worker_id, *extra]
         proc = subprocess.Popen(command, cwd=ROOT, env=env, stdout=out, stderr=subprocess.STDOUT)
     return proc, logfile
@@ -367,7 +373,7 @@ def test_failing_jobs_end_failed_with_the_reason(archive, tmp_path):
     assert gone in finished[deleted].error and "does not exist" in finished[deleted].error
     assert finished[no_model].error.startswith("NotFound: face_model: ")
     assert "'flame-2023'" in finished[no_model].error and str(settings.facemodel_dir) in finished[no_model].error
-    assert finished[bad].error.startswith("InvalidArgument: spec.preset: unknown preset 'huge'")
+    assert finished[bad].error.startswith("InvalidArgument: spec.preset: ") and "'huge'" in finished[bad].error
     assert all(len(j.error) <= 2000 and j.result is None for j in finished.values())
     assert not BundleStore(settings.bundle_dir).ids()
 
@@ -377,9 +383,12 @@ def test_spec_checks_and_the_command_options():
                           "resolution": 256, "future": 1})
     assert spec.seed == 0 and spec.iterations is None and spec.resolution == 256 and not spec.preset_overrides()
     for key, value in (("iterations", 0), ("seed", -1), ("seed", True), ("avatar_id", "../x"), ("upload_id", "x"),
-                       ("checkpoint_every", 1.5)):
+                       ("checkpoint_every", 1.5), ("iterations", 1_000_001), ("iterations", "30"), ("resolution", 8),
+                       ("resolution", 8193), ("seed", 2**32), ("preset", "huge"), ("avatar_id", "x.tmp"),
+                       ("gaussians", 200_001), ("mouth", 0), ("webhook_url", "ftp://example.com/x")):
         with pytest.raises(InvalidArgument, match=f"spec.{key}"):
             JobSpec.parse({"upload_id": "upl_" + "a" * 22, "preset": "tiny", "avatar_id": "x", key: value})
+    assert set(typing.get_args(JobSpec.model_fields["preset"].annotation)) == set(PRESETS)
     args = add_arguments(argparse.ArgumentParser()).parse_args([])
     assert vars(args) == {"device": "cpu", "data_dir": None, "jobs_url": None, "worker_id": None, "once": False,
                           "metrics_port": 0}
@@ -388,3 +397,74 @@ def test_spec_checks_and_the_command_options():
          "--metrics-port", "9100"])
     assert (args.device, args.data_dir, args.jobs_url, args.worker_id, args.once, args.metrics_port) == (
         "cuda", Path("/d"), "sqlite:///j.db", "w", True, 9100)
+
+
+# --------------------------------------------------------------------------------------------------- resolution
+def _png_size(path: Path) -> tuple[int, int]:
+    header = path.read_bytes()[:24]
+    assert header[:8] == b"\x89PNG\r\n\x1a\n"
+    return int.from_bytes(header[16:20], "big"), int.from_bytes(header[20:24], "big")
+
+
+def test_a_job_trains_at_its_resolution(archive, tmp_path, monkeypatch):
+    """``resolution`` 32 on the 64 x 64 dataset: the Trainer the worker builds trains on the dataset resampled to
+    32 x 32 (targets, cameras, preview and summary at that size), its intrinsics halved, and the job says so."""
+    settings = make_settings(tmp_path)
+    upload_id = upload(settings, archive)
+    job_id = submit(settings, upload_id, "half", resolution=32, iterations=4, checkpoint_every=4)
+    trained: list[tuple[Path, int, int]] = []
+    real_init = Trainer.__init__
+
+    def spy(self, data_dir, *args, **kwargs):
+        real_init(self, data_dir, *args, **kwargs)
+        trained.append((Path(data_dir), self.dataset.tracking.width, self.dataset.tracking.height))
+
+    monkeypatch.setattr(Trainer, "__init__", spy)
+    with Worker(settings, worker_id="w") as worker:
+        job = worker.run_one()
+    assert job.id == job_id and job.state is JobState.SUCCEEDED, job.error
+    work = settings.work_dir / job_id
+    assert [(size, height) for _, size, height in trained] == [(32, 32)]
+    data_dir = trained[0][0]
+    assert data_dir == work / "dataset_32x32"
+    assert json.loads((work / "summary.json").read_text())["size"] == [32, 32]
+    assert _png_size(work / "preview.png") == _png_size(work / "truth.png") == (32, 32)
+    original, resized = read_dataset(UploadStore(settings.upload_dir).path(upload_id)), read_dataset(data_dir)
+    assert (resized.tracking.width, resized.tracking.height, len(resized)) == (32, 32, len(original))
+    assert np.allclose(resized.tracking.K[:, :2], original.tracking.K[:, :2] / 2, atol=1e-5)
+    assert np.array_equal(resized.tracking.K[:, 2], original.tracking.K[:, 2])
+    for name in ("R", "t", "expression", "joint_rotations", "eyelids", "train", "test"):
+        assert np.array_equal(getattr(resized.tracking, name), getattr(original.tracking, name)), name
+    assert resized.frame(0).shape == (32, 32, 3) and resized.mask(0).shape == (32, 32)
+    assert abs(float(resized.frame(0).mean()) - float(original.frame(0).mean())) < 2 / 255  # filtered, not picked
+    with JobStore.open(settings.jobs_database_url) as jobs:
+        notes = [e.data for e in events(jobs, job_id, EventKind.LOG) if "resolution" in e.data]
+    assert notes == [{"message": "resolution 32: training at 32x32 (the dataset is 64x64)", "resolution": 32,
+                      "width": 32, "height": 32}]
+
+
+def test_resampling_a_dataset_keeps_the_picture_and_the_cameras(archive, tmp_path):
+    assert training_size(640, 480, 320) == (320, 240)
+    assert training_size(480, 640, 100) == (75, 100)
+    assert training_size(640, 480, None) == training_size(640, 480, 640) == training_size(640, 480, 4096) == (640, 480)
+    # a flat image stays flat; detail finer than the new pixels averages out instead of aliasing
+    assert np.allclose(resample(np.full((64, 48, 3), 0.25, np.float32), 24, 32), 0.25)
+    stripes = np.zeros((64, 64), np.float32)
+    stripes[:, ::2] = 1.0
+    smooth = resample(stripes, 16, 16)
+    assert np.allclose(smooth[:, 1:-1], 0.5, atol=1e-3) and np.allclose(smooth, 0.5, atol=0.05)  # edges: clamped
+    # a point keeps its place in the picture (pixel origin at the top-left corner)
+    K = np.array([[[500.0, 0.0, 321.0], [0.0, 480.0, 239.0], [0.0, 0.0, 1.0]]], np.float32)
+    point = np.array([0.05, -0.03, 0.6], np.float32)
+    u, v, w = K[0] @ point
+    u2, v2, w2 = scaled_intrinsics(K, 320 / 640, 240 / 480)[0] @ point
+    assert np.allclose([u2 / w2 / 320, v2 / w2 / 240], [u / w / 640, v / w / 480])
+    # the dataset: its own folder when it is no larger, else one resampled copy, reused (a resumed job's)
+    settings = make_settings(tmp_path)
+    source = UploadStore(settings.upload_dir).path(upload(settings, archive))
+    assert dataset_at(source, 64, tmp_path) == (source, (64, 64), (64, 64))
+    first = dataset_at(source, 48, tmp_path / "work")
+    assert first == (tmp_path / "work" / "dataset_48x48", (48, 48), (64, 64))
+    stamp = (first[0] / "dataset.json").stat().st_mtime_ns
+    assert dataset_at(source, 48, tmp_path / "work") == first
+    assert (first[0] / "dataset.json").stat().st_mtime_ns == stamp

@@ -2,7 +2,7 @@
 
 One :class:`Access` per process, held by the :class:`~service.engine.Engine` (both transports reach it there):
 
-- **Keys** (:mod:`service.jobs.keys`: ``bsk_<id>_<secret>``, hashed in the job database) carry a tenant and
+- **Keys** (:mod:`service.access.keys`: ``bsk_<id>_<secret>``, hashed in the job database) carry a tenant and
   scopes: ``render`` (read and stream avatars), ``avatars:write`` (upload, replace, unload, delete),
   ``jobs`` (datasets and training jobs), ``admin`` (everything, every tenant, keys). HTTP and gRPC read
   ``authorization: Bearer <key>``; the WebSocket reads it from a subprotocol ``bearer.<key>`` offered beside
@@ -17,7 +17,7 @@ One :class:`Access` per process, held by the :class:`~service.engine.Engine` (bo
   Kubernetes Secret) is registered instead. ``auth=off`` accepts every call as admin, with a warning at start.
 - **Limits per key** (admin keys are exempt): concurrent streams, uploads and jobs per hour, each RESOURCE_EXHAUSTED
   (HTTP 429) with the seconds to wait (``Retry-After``). Shared by every replica through Redis when ``redis_url``
-  is set, else counted per process (:mod:`service.limits`).
+  is set, else counted per process (:mod:`service.access.limits`).
 - **Audit**: one line on the ``blendsplat.audit`` logger for every avatar write, unload and delete, key change and
   job submission: the action, its target, the key and tenant.
 
@@ -38,10 +38,10 @@ from pathlib import Path
 
 from blendsplat.v1 import render_pb2 as pb
 
-from .errors import ResourceExhausted, ServiceError
-from .jobs.keys import ApiKey, KeyStore, parse_token
+from ..errors import ResourceExhausted, ServiceError
+from ..settings import Settings
+from .keys import ApiKey, KeyStore, parse_token
 from .limits import Limits, LocalLimits, limits_for, no_release
-from .settings import Settings
 
 log = logging.getLogger(__name__)
 audit_log = logging.getLogger("blendsplat.audit")
@@ -56,6 +56,9 @@ class Unauthenticated(ServiceError):
     """No key, or one that is not valid (unknown, revoked, malformed): HTTP 401, gRPC UNAUTHENTICATED."""
 
     code = pb.UNAUTHENTICATED
+
+    def http_headers(self) -> dict[str, str]:
+        return {"WWW-Authenticate": 'Bearer realm="blendsplat"'}
 
 
 class PermissionDenied(ServiceError):
@@ -122,7 +125,11 @@ def ws_key(protocols: list[str]) -> str | None:
 class Access:
     """Authentication, ownership rules, per-key limits and audit for one process (see the module docstring)."""
 
-    def __init__(self, settings: Settings, keys: KeyStore | None, on_limit_failure: Callable[[], None] | None = None):
+    def __init__(self, settings: Settings, keys: KeyStore | None, on_limit_failure: Callable[[], None] | None = None,
+                 usage: list[Callable[[str], int]] | None = None):
+        """``keys``: the key store (needed with ``auth=keys``); ``on_limit_failure``: called when the shared limits
+        cannot be checked (Redis away); ``usage``: the bytes a tenant stores, one callable per store (the bundle
+        store, the uploads), summed by :meth:`check_quota`."""
         self.settings = settings
         self.enabled = settings.auth == "keys"
         self.keys = keys
@@ -130,9 +137,15 @@ class Access:
             raise ValueError("auth=keys needs the job database (its api_keys table)")
         self._cache: dict[str, tuple[Principal, float]] = {}
         self._lock = threading.Lock()
-        # per-key limits: shared by the replicas through Redis when redis_url is set (service/limits.py)
+        # per-key limits: shared by the replicas through Redis when redis_url is set (service/access/limits.py)
         self.limits: Limits = limits_for(settings.redis_url, on_limit_failure) if self.enabled else LocalLimits()
-        self.usage: list[Callable[[str], int]] = []  # bytes a tenant stores, per store (check_quota sums them)
+        self.usage: list[Callable[[str], int]] = list(usage or [])
+
+    @classmethod
+    def trusted(cls, settings: Settings) -> Access:
+        """Every call trusted, as with ``auth=off`` (no key store, no limits): tests and tools that build an
+        :class:`~service.engine.Engine` of their own. The service builds its access from its settings."""
+        return cls(settings.model_copy(update={"auth": "off"}), None)
 
     # ---- start-up ----
     def bootstrap(self) -> Path | None:

@@ -1,5 +1,5 @@
 """API keys on the HTTP transport: the ``Authorization: Bearer`` dependency every protected route declares, and the
-WebSocket's key (a ``bearer.<key>`` subprotocol) and Origin check. The rules are :mod:`service.auth`'s.
+WebSocket's key (a ``bearer.<key>`` subprotocol) and Origin check. The rules are :mod:`service.access.auth`'s.
 
 A route declares what it needs as a parameter, ``principal: Caller("render")``; the OpenAPI document then lists
 the bearer scheme on it. ``tests/test_auth.py`` walks the app's routes: one without a key is refused unless it is
@@ -9,14 +9,16 @@ in :data:`OPEN_PATHS`.
 from __future__ import annotations
 
 import asyncio
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any
 from urllib.parse import urlsplit
 
 from fastapi import Depends, Request, WebSocket
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from .auth import WS_PROTOCOL, PermissionDenied, Principal, ws_key
-from .engine import Engine
+
+if TYPE_CHECKING:
+    from ..engine import Engine
 
 # Routes that need no key: probes, metrics, the API description and the static pages (they ask for a key).
 OPEN_PATHS = frozenset({"/healthz", "/readyz", "/metrics", "/openapi.json", "/docs", "/docs/oauth2-redirect",

@@ -31,7 +31,7 @@ from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from typing import Protocol
 
-from .errors import ResourceExhausted
+from ..errors import ResourceExhausted
 
 log = logging.getLogger(__name__)
 HOUR = 3600.0
@@ -44,6 +44,9 @@ class RateLimited(ResourceExhausted):
     def __init__(self, message: str, *, retry_after: float, field: str | None = None):
         super().__init__(message, field=field)
         self.retry_after = max(1, int(-(-retry_after // 1)))
+
+    def http_headers(self) -> dict[str, str]:
+        return {"Retry-After": str(self.retry_after)}
 
 
 def no_release() -> None:

@@ -1,49 +1,28 @@
-"""The job database: its tables (SQLAlchemy 2 typed ORM), the values the store hands out, and the engine factory.
+"""The job store's tables (SQLAlchemy 2 typed ORM, on the shared database of :mod:`service.db`) and the values the
+store hands out.
 
 Three tables. ``jobs`` is the single source of truth of the training queue: a job's state, spec, lease, attempts,
 cancel flag, checkpoint, latest progress, error and result. ``job_events`` is its append-only history (state
 changes, progress reports, previews, log lines), replayed in id order by the event stream
-(:mod:`service.job_events`). ``webhook_deliveries`` is the outbox of a job's webhook (the spec's ``webhook_url``):
-one row per state change, written in the state change's transaction and sent by :mod:`service.webhooks`.
+(:mod:`service.jobs.events`). ``webhook_deliveries`` is the outbox of a job's webhook (the spec's ``webhook_url``):
+one row per state change, written in the state change's transaction and sent by :mod:`service.jobs.webhooks`.
 
-The schema is owned by the Alembic migrations in ``migrations/versions``; these classes must match them (a test
-runs Alembic's autogenerate comparison). Change both together: edit a model, then add a migration.
-
-Timestamps are timezone-aware UTC everywhere: PostgreSQL stores ``timestamptz``; SQLite stores the UTC wall time
-as text, and :class:`UTCDateTime` gives it back aware.
+The schema is owned by the Alembic migrations in ``service/migrations/versions``; these classes must match them (a
+test runs Alembic's autogenerate comparison). Change both together: edit a model, then add a migration
+(:mod:`service.db` says how). Timestamps are timezone-aware UTC (:class:`service.db.UTCDateTime`).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import enum
-from datetime import UTC, datetime
-from pathlib import Path
+from datetime import datetime
 from typing import Any
 
-from sqlalchemy import (
-    JSON,
-    BigInteger,
-    Boolean,
-    CheckConstraint,
-    DateTime,
-    Engine,
-    Float,
-    ForeignKey,
-    Index,
-    Integer,
-    MetaData,
-    String,
-    Text,
-    create_engine,
-    event,
-    func,
-)
-from sqlalchemy.engine import make_url
-from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
-from sqlalchemy.types import TypeDecorator
+from sqlalchemy import BigInteger, Boolean, CheckConstraint, Float, ForeignKey, Index, Integer, String, Text, func
+from sqlalchemy.orm import Mapped, mapped_column
 
-BUSY_TIMEOUT_MS = 10_000  # SQLite: how long a connection waits for another's write lock before "database is locked"
+from ..db import Base
 
 
 class JobState(enum.StrEnum):
@@ -68,40 +47,6 @@ class DeliveryStatus(enum.StrEnum):
     PENDING = "pending"  # due at next_attempt_at (a dispatcher that claimed it holds it until then)
     DELIVERED = "delivered"  # a 2xx answer: never sent again
     FAILED = "failed"  # out of attempts or time
-
-
-class UTCDateTime(TypeDecorator[datetime]):
-    """A timezone-aware UTC datetime on every backend. Binding a naive datetime is an error (it has no zone)."""
-
-    impl = DateTime(timezone=True)
-    cache_ok = True
-
-    def process_bind_param(self, value: datetime | None, dialect) -> datetime | None:
-        if value is None:
-            return None
-        if value.tzinfo is None:
-            raise ValueError("naive datetime: the job store keeps timezone-aware UTC times only")
-        value = value.astimezone(UTC)
-        return value.replace(tzinfo=None) if dialect.name == "sqlite" else value
-
-    def process_result_value(self, value: datetime | None, dialect) -> datetime | None:
-        if value is None:
-            return None
-        return value.replace(tzinfo=UTC) if value.tzinfo is None else value.astimezone(UTC)
-
-
-_NAMING = {  # stable constraint names, so migrations can refer to them on every backend
-    "ix": "ix_%(table_name)s_%(column_0_N_name)s",
-    "uq": "uq_%(table_name)s_%(column_0_N_name)s",
-    "ck": "ck_%(table_name)s_%(constraint_name)s",
-    "fk": "fk_%(table_name)s_%(column_0_name)s_%(referred_table_name)s",
-    "pk": "pk_%(table_name)s",
-}
-
-
-class Base(DeclarativeBase):
-    metadata = MetaData(naming_convention=_NAMING)
-    type_annotation_map = {datetime: UTCDateTime(), dict[str, Any]: JSON()}
 
 
 def _states() -> str:
@@ -286,43 +231,3 @@ class HeartbeatReply:
 
     owned: bool
     cancel_requested: bool
-
-
-# ---- connecting ----
-
-def default_url(data_dir: str | Path) -> str:
-    """The embedded default: a SQLite file ``<data_dir>/jobs.db`` (one machine only)."""
-    return f"sqlite:///{Path(data_dir).resolve() / 'jobs.db'}"
-
-
-def make_engine(url: str, *, busy_timeout_ms: int = BUSY_TIMEOUT_MS) -> Engine:
-    """An engine for a job database URL: ``sqlite:///path`` or ``postgresql+psycopg://...``.
-
-    SQLite connections get WAL journaling, a busy timeout, foreign keys (for the events' cascade) and explicit
-    transaction control: a transaction starts with ``BEGIN`` or, on an engine made with
-    ``execution_options(sqlite_begin="IMMEDIATE")``, with ``BEGIN IMMEDIATE`` (takes the write lock at once, so
-    read-then-write transactions never fail on a lock upgrade). The folder of a SQLite file is created."""
-    parsed = make_url(url)
-    if parsed.get_backend_name() != "sqlite":
-        return create_engine(parsed, pool_pre_ping=True)
-    if parsed.database and parsed.database != ":memory:":
-        Path(parsed.database).parent.mkdir(parents=True, exist_ok=True)
-    engine = create_engine(parsed, connect_args={"check_same_thread": False})
-
-    @event.listens_for(engine, "connect")
-    def _configure(dbapi_connection, _record) -> None:
-        dbapi_connection.isolation_level = None  # no implicit BEGIN from the driver: the "begin" hook below owns it
-        cursor = dbapi_connection.cursor()
-        cursor.execute("PRAGMA journal_mode=WAL")
-        cursor.execute(f"PRAGMA busy_timeout={int(busy_timeout_ms)}")
-        cursor.execute("PRAGMA foreign_keys=ON")
-        cursor.close()
-
-    @event.listens_for(engine, "begin")
-    def _begin(connection) -> None:
-        mode = connection.get_execution_options().get("sqlite_begin", "DEFERRED")
-        if mode not in ("DEFERRED", "IMMEDIATE", "EXCLUSIVE"):
-            raise ValueError(f"sqlite_begin: {mode!r} is not a SQLite transaction mode")
-        connection.exec_driver_sql(f"BEGIN {mode}")
-
-    return engine

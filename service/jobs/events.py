@@ -1,6 +1,6 @@
-"""A job's live history as server-sent events: ``GET /v1/jobs/{job_id}/events`` (the route is in jobs_api.py).
+"""A job's live history as server-sent events: ``GET /v1/jobs/{job_id}/events`` (the route is in api.py).
 
-Every row of the job's ``job_events`` table (:meth:`service.jobs.JobStore.events`) becomes one event, in id
+Every row of the job's ``job_events`` table (:meth:`service.jobs.store.JobStore.events`) becomes one event, in id
 order::
 
     id: 42
@@ -47,12 +47,12 @@ from typing import TYPE_CHECKING, Any
 from fastapi import FastAPI
 from starlette.responses import StreamingResponse
 
-from .errors import InvalidArgument, NotFound, ResourceExhausted, Unavailable
-from .jobs import EventKind, JobEvent
-from .jobs.store import MAX_LIST
+from ..errors import InvalidArgument, NotFound, ResourceExhausted, Unavailable
+from .checks import MAX_LIST
+from .models import EventKind, JobEvent
 
 if TYPE_CHECKING:
-    from .jobs_api import Training
+    from .training import Training
 
 log = logging.getLogger(__name__)
 
@@ -210,7 +210,7 @@ def event_stream(app: FastAPI, training: Training, job_id: str, after: int,
     whenever the stream ends or never starts) frees what the caller holds for it (the key's stream slot)."""
     registry = streams(app)
     slot = registry.reserve()
-    drain = getattr(app.state, "closing", None)  # set when the server drains (service.http_app)
+    drain = getattr(app.state, "closing", None)  # set when the server drains (service.http.app)
 
     def release() -> None:  # each part is idempotent
         slot.release()

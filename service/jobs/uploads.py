@@ -2,7 +2,7 @@
 (``<data_dir>/uploads/``).
 
 An upload is streamed to a temporary file (never held whole in memory, refused once it passes ``max_bytes``),
-then, in a worker thread, checked and extracted (:mod:`service.archive`), validated as the portable format
+then, in a worker thread, checked and extracted (:mod:`service.jobs.archive`), validated as the portable format
 (``render_core.data.portable.validate_dataset``: every problem listed) and only then published by one rename::
 
     <root>/<upload_id>/dataset/      the dataset folder (what training reads)
@@ -34,8 +34,8 @@ from pathlib import Path
 
 from render_core.data.portable import MANIFEST, validate_dataset
 
+from ..errors import InvalidArgument, NotFound
 from .archive import ArchiveLimits, detect_kind, extract_archive
-from .errors import InvalidArgument, NotFound
 
 __all__ = ["ID_PATTERN", "InvalidDataset", "Upload", "UploadStore", "UploadTooLarge", "check_upload_id"]
 
@@ -51,7 +51,9 @@ _MAX_FILENAME_CHARS = 255
 
 
 class UploadTooLarge(InvalidArgument):
-    """The upload passed ``max_bytes`` (``field`` ``"file"``)."""
+    """The upload passed ``max_bytes`` (``field`` ``"file"``): INVALID_ARGUMENT on the wire, HTTP 413."""
+
+    http = 413
 
 
 class InvalidDataset(InvalidArgument):
@@ -88,7 +90,7 @@ class Upload:
     face_model: str
     filename: str | None  # the client's file name (display only: never used as a path)
     archive: str  # "tar", "tar.gz" or "zip"
-    tenant: str | None = None  # the owning tenant (service/auth.py; None: admin keys only)
+    tenant: str | None = None  # the owning tenant (service/access/auth.py; None: admin keys only)
 
     def to_json(self) -> dict:
         """The JSON object of ``upload.json`` (``created_at`` as ISO 8601 UTC)."""
@@ -132,7 +134,7 @@ class UploadStore:
         """Receive one archive from ``chunks``, check, extract, validate and publish it; return its record.
 
         Raises :class:`UploadTooLarge` once more than ``max_bytes`` arrived (the rest is not read),
-        :class:`~service.archive.ArchiveError` for an archive refused, :class:`InvalidDataset` for a dataset that
+        :class:`~service.jobs.archive.ArchiveError` for an archive refused, :class:`InvalidDataset` for a dataset that
         is not valid. Whatever happens (also when the caller is cancelled, e.g. the client went away), a refused
         upload leaves nothing in the store."""
         self.ensure()

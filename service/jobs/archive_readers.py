@@ -1,28 +1,8 @@
-"""Safe inspection and extraction of uploaded archives (``.tar``, ``.tar.gz``, ``.zip``), standard library only.
-
-An upload is hostile until proven otherwise. The kind is read from the content (magic bytes), never from the file
-name. Every member is checked **before anything is written**:
-
-- names: valid UTF-8, no control characters, no backslashes, not absolute (``/x``, ``C:x``), no ``..`` component,
-  bounded length and depth, no duplicates (after dropping ``.`` components), no file that is also a folder;
-- types: regular files and folders only (symbolic and hard links, devices, FIFOs, sparse files, encrypted zip
-  members are refused);
-- sizes: member count, each member's size, the total, and the compression ratio (total uncompressed bytes over the
-  archive's bytes; for zip also per member) under :class:`ArchiveLimits`;
-- integrity: a corrupt or truncated archive is refused with the reason (a gzip stream is decompressed to its end,
-  so its CRC is checked and data hidden after the tar's end-of-archive marker counts; zip CRCs are checked as
-  members are written).
-
-Extraction writes regular files and folders only (``O_EXCL | O_NOFOLLOW``, modes 0644 / 0755; archive modes, owners
-and times are ignored), counts the bytes really written and stops at the limits, whatever the headers declared.
-On any failure the destination folder is removed: nothing is left behind.
-
-The dataset may sit at the archive's root (``dataset.json`` at the top) or inside exactly one top-level folder;
-:func:`extract_archive` returns that dataset root. A ``__MACOSX/`` folder (macOS Finder's resource forks) is checked
-like everything else but neither extracted nor counted as a top-level folder.
-
-Every refusal is one :class:`ArchiveError` (an ``InvalidArgument``: HTTP 422 / gRPC INVALID_ARGUMENT, ``field``
-``"file"``) whose message names the problem and the offending member, and whose ``reason`` is a short code.
+"""Reading uploaded archives for the checks of :mod:`service.jobs.archive`: what an archive may hold
+(:class:`ArchiveLimits`), how one is refused (:class:`ArchiveError`), its kind from its content
+(:func:`detect_kind`), and bounded readers of tar, gzip-compressed tar and zip that yield each member (an
+:class:`Entry`) and open it for extraction. A reader never trusts a header: a tar stream is read through a guard
+(position and read-size caps, sparse headers refused), a zip's central directory is bounded before it is parsed.
 """
 
 from __future__ import annotations
@@ -31,33 +11,22 @@ import gzip
 import io
 import os
 import re
-import shutil
 import stat
 import struct
 import tarfile
 import zipfile
 from collections.abc import Iterator
 from dataclasses import dataclass
-from pathlib import Path
 
-from .errors import InvalidArgument
+from ..errors import InvalidArgument
 
-__all__ = ["ArchiveError", "ArchiveInfo", "ArchiveLimits", "Member", "detect_kind", "extract_archive",
-           "inspect_archive"]
-
-KINDS = ("tar", "tar.gz", "zip")
 REASONS = ("kind", "corrupt", "name", "traversal", "absolute", "link", "special", "unsupported", "duplicate",
            "too_many", "too_large", "bomb", "layout")
-MANIFEST = "dataset.json"  # what marks the dataset root (docs/tracked-video-format.md)
-IGNORED_TOP = "__MACOSX"
-
-_CHUNK = 256 << 10  # extraction copies in chunks of this size
+CHUNK = 256 << 10  # extraction copies (and a tar's tail is read) in chunks of this size
 _MAX_READ = 1 << 20  # the largest single read a tar header (pax, GNU long name) may ask for
 _MAX_TAIL = 16 << 20  # bytes allowed after a tar's end-of-archive marker (record padding)
 _HEADER_ALLOWANCE = 1536  # tar stream bytes per member beyond its data (header, padding, long names)
 _CD_BYTES_PER_MEMBER = 2048  # central-directory bytes a zip may spend per allowed member
-_MAX_COMPONENT_BYTES = 255  # NAME_MAX of common file systems
-_DRIVE = re.compile(r"^[A-Za-z]:")
 _PAX_SPARSE = re.compile(rb"(?:^|\n)[0-9]+ GNU\.sparse\.")  # a pax record of GNU's sparse formats 0.0 to 1.0
 _ZIP_METHODS = (zipfile.ZIP_STORED, zipfile.ZIP_DEFLATED, zipfile.ZIP_BZIP2, zipfile.ZIP_LZMA)
 _TAR_FILE_TYPES = (tarfile.REGTYPE, tarfile.AREGTYPE, tarfile.CONTTYPE)
@@ -104,30 +73,45 @@ class ArchiveLimits:
             raise ValueError(f"ArchiveLimits.ratio_grace_bytes must be >= 0, got {self.ratio_grace_bytes!r}")
 
 
-@dataclass(frozen=True)
-class Member:
-    """One checked member: its normalised relative path (``/``-separated, no ``.`` components, no trailing ``/``),
-    whether it is a folder, and its declared size in bytes (0 for folders)."""
+def _show(name: str | None) -> str:
+    """A member name for a message: repr (control characters escaped), raw bytes if not valid UTF-8, bounded."""
+    try:
+        name.encode("utf-8")
+        text = repr(name)
+    except UnicodeEncodeError:
+        text = repr(name.encode("utf-8", "surrogateescape"))
+    return text if len(text) <= 200 else text[:197] + "..."
 
-    name: str
-    is_dir: bool
+
+def _why(e: BaseException) -> str:
+    text = str(e) or type(e).__name__
+    return text if len(text) <= 200 else text[:197] + "..."
+
+
+def _is_tar_block(block: bytes) -> bool:
+    """Whether a 512-byte block is a tar header: the ustar magic, or (old V7 archives) a valid header checksum."""
+    if len(block) < 512:
+        return False
+    if block[257:262] == b"ustar":
+        return True
+    try:
+        return tarfile.nti(block[148:156]) in tarfile.calc_chksums(block) and any(block[:100])
+    except (ValueError, tarfile.HeaderError):
+        return False
+
+
+@dataclass
+class Entry:
+    """One member as a reader sees it, before checks: ``kind`` is "file" or "dir", or ``refusal`` says why not."""
+
+    raw: str
+    kind: str | None
     size: int
+    handle: object
+    refusal: tuple[str, str] | None = None  # (reason, problem)
+    compressed: int | None = None  # zip: the member's compressed size
 
 
-@dataclass(frozen=True)
-class ArchiveInfo:
-    """The result of :func:`inspect_archive`: the kind (``"tar"``, ``"tar.gz"`` or ``"zip"``), every member in
-    archive order (``__MACOSX/`` ones included), the members' total declared size, the archive's own size, and the
-    dataset root inside it (``""`` for the archive's root, else the one top-level folder's name)."""
-
-    kind: str
-    members: tuple[Member, ...]
-    total_bytes: int
-    archive_bytes: int
-    root: str
-
-
-# ------------------------------------------------------------------------------------------------------ public API
 def detect_kind(path: str | os.PathLike) -> str:
     """The archive's kind from its first bytes: ``"tar"``, ``"tar.gz"`` (a gzip stream holding a tar) or ``"zip"``.
     Raises :class:`ArchiveError` (reason ``kind``, or ``corrupt`` for an unreadable gzip stream) for anything else."""
@@ -158,214 +142,8 @@ def detect_kind(path: str | os.PathLike) -> str:
     raise ArchiveError("not a .tar, .tar.gz or .zip archive (unrecognised content)", reason="kind")
 
 
-def inspect_archive(path: str | os.PathLike, limits: ArchiveLimits = ArchiveLimits()) -> ArchiveInfo:
-    """Check every member of the archive at ``path`` against ``limits`` without extracting anything, and find the
-    dataset root. Raises :class:`ArchiveError` naming the first problem."""
-    with _open_reader(path, limits) as reader:
-        return _check(reader, limits)[0]
-
-
-def extract_archive(path: str | os.PathLike, dest: str | os.PathLike,
-                    limits: ArchiveLimits = ArchiveLimits()) -> Path:
-    """Check the archive at ``path`` (as :func:`inspect_archive`), then extract it into the new folder ``dest``
-    (its parent must exist, ``dest`` must not) and return the dataset root (``dest`` or ``dest/<top folder>``).
-
-    The bytes written are counted against the limits as they are written. On any error ``dest`` is removed and
-    :class:`ArchiveError` raised (``OSError`` for a problem of the destination, e.g. a full disk)."""
-    dest = Path(dest)
-    with _open_reader(path, limits) as reader:
-        info, plan = _check(reader, limits)
-        os.mkdir(dest, 0o755)
-        try:
-            _write(reader, plan, dest, limits)
-        except BaseException:
-            shutil.rmtree(dest, ignore_errors=True)
-            raise
-    return dest / info.root if info.root else dest
-
-
-# --------------------------------------------------------------------------------------------------------- helpers
-def _show(name: str | None) -> str:
-    """A member name for a message: repr (control characters escaped), raw bytes if not valid UTF-8, bounded."""
-    try:
-        name.encode("utf-8")
-        text = repr(name)
-    except UnicodeEncodeError:
-        text = repr(name.encode("utf-8", "surrogateescape"))
-    return text if len(text) <= 200 else text[:197] + "..."
-
-
-def _why(e: BaseException) -> str:
-    text = str(e) or type(e).__name__
-    return text if len(text) <= 200 else text[:197] + "..."
-
-
-def _is_tar_block(block: bytes) -> bool:
-    """Whether a 512-byte block is a tar header: the ustar magic, or (old V7 archives) a valid header checksum."""
-    if len(block) < 512:
-        return False
-    if block[257:262] == b"ustar":
-        return True
-    try:
-        return tarfile.nti(block[148:156]) in tarfile.calc_chksums(block) and any(block[:100])
-    except (ValueError, tarfile.HeaderError):
-        return False
-
-
-def _name_parts(raw: str, limits: ArchiveLimits) -> tuple[str, ...]:
-    """The checked, normalised components of a member name (``()`` for the root folder itself)."""
-    try:
-        raw.encode("utf-8")
-    except UnicodeEncodeError:
-        raise ArchiveError("the member name is not valid UTF-8", reason="name", member=raw) from None
-    if any(ord(c) < 32 or 127 <= ord(c) < 160 for c in raw):
-        raise ArchiveError("the member name contains control characters", reason="name", member=raw)
-    if "\\" in raw:
-        raise ArchiveError("the member name contains a backslash (Windows path separator)", reason="name",
-                           member=raw)
-    if raw.startswith("/") or _DRIVE.match(raw):
-        raise ArchiveError("absolute paths are refused", reason="absolute", member=raw)
-    if len(raw) > limits.max_path_chars:
-        raise ArchiveError(f"the member name is longer than {limits.max_path_chars} characters", reason="name",
-                           member=raw)
-    parts = tuple(p for p in raw.split("/") if p not in ("", "."))
-    if ".." in parts:
-        raise ArchiveError("path traversal ('..' component) is refused", reason="traversal", member=raw)
-    if len(parts) > limits.max_depth:
-        raise ArchiveError(f"the member is nested deeper than {limits.max_depth} folders", reason="name", member=raw)
-    if any(len(p.encode("utf-8")) > _MAX_COMPONENT_BYTES for p in parts):
-        raise ArchiveError(f"a path component is longer than {_MAX_COMPONENT_BYTES} bytes", reason="name",
-                           member=raw)
-    return parts
-
-
-@dataclass
-class _Entry:
-    """One member as a reader sees it, before checks: ``kind`` is "file" or "dir", or ``refusal`` says why not."""
-
-    raw: str
-    kind: str | None
-    size: int
-    handle: object
-    refusal: tuple[str, str] | None = None  # (reason, problem)
-    compressed: int | None = None  # zip: the member's compressed size
-
-
-def _check(reader, limits: ArchiveLimits) -> tuple[ArchiveInfo, list[tuple[Member, tuple[str, ...], object]]]:
-    """Run every check over the reader's members (streamed: a tar is never read past a refused member) and plan
-    the extraction: (member, path parts, reader handle) for everything to extract."""
-    members: list[Member] = []
-    plan: list[tuple[Member, tuple[str, ...], object]] = []
-    files: set[tuple[str, ...]] = set()
-    dirs: set[tuple[str, ...]] = set()
-    explicit_dirs: set[tuple[str, ...]] = set()
-    total = 0
-    bomb_at = max(limits.ratio_grace_bytes, limits.max_ratio * reader.archive_bytes)
-    for count, e in enumerate(reader.entries(), 1):
-        if count > limits.max_members:
-            raise ArchiveError(f"the archive holds more than {limits.max_members} members", reason="too_many",
-                               member=e.raw)
-        parts = _name_parts(e.raw, limits)
-        if e.refusal is not None:
-            raise ArchiveError(e.refusal[1], reason=e.refusal[0], member=e.raw)
-        if e.size < 0:
-            raise ArchiveError("a negative member size", reason="corrupt", member=e.raw)
-        if e.kind == "dir":
-            if e.size:
-                raise ArchiveError("a folder entry that holds data", reason="corrupt", member=e.raw)
-            if not parts:
-                continue  # the archive's root itself ("./")
-            if parts in explicit_dirs:
-                raise ArchiveError("duplicate member name", reason="duplicate", member=e.raw)
-            if parts in files:
-                raise ArchiveError("a folder with the name of a file", reason="duplicate", member=e.raw)
-            explicit_dirs.add(parts)
-        else:
-            if not parts:
-                raise ArchiveError("a file without a name", reason="name", member=e.raw)
-            if parts in files:
-                raise ArchiveError("duplicate member name", reason="duplicate", member=e.raw)
-            if parts in dirs:
-                raise ArchiveError("a file with the name of a folder", reason="duplicate", member=e.raw)
-            if e.size > limits.max_member_bytes:
-                raise ArchiveError(f"the member is larger than {limits.max_member_bytes} bytes ({e.size})",
-                                   reason="too_large", member=e.raw)
-            if (e.compressed is not None and e.size > limits.ratio_grace_bytes
-                    and e.size > limits.max_ratio * max(e.compressed, 1)):
-                raise ArchiveError(f"a decompression bomb: {e.size} bytes compressed to {e.compressed} (more than "
-                                   f"{limits.max_ratio:g} times)", reason="bomb", member=e.raw)
-            total += e.size
-            if total > limits.max_total_bytes:
-                raise ArchiveError(f"the archive holds more than {limits.max_total_bytes} bytes uncompressed",
-                                   reason="too_large", member=e.raw)
-            if total > bomb_at:
-                raise ArchiveError(f"a decompression bomb: more than {limits.max_ratio:g} uncompressed bytes per "
-                                   f"archive byte ({total} from {reader.archive_bytes})", reason="bomb",
-                                   member=e.raw)
-            files.add(parts)
-        for i in range(1, len(parts)):
-            if parts[:i] in files:
-                raise ArchiveError("a member inside a path that is a file", reason="duplicate", member=e.raw)
-            dirs.add(parts[:i])
-        if e.kind == "dir":
-            dirs.add(parts)
-        member = Member("/".join(parts), e.kind == "dir", e.size)
-        members.append(member)
-        if parts[0] != IGNORED_TOP:
-            plan.append((member, parts, e.handle))
-    info = ArchiveInfo(reader.kind, tuple(members), total, reader.archive_bytes, _root(plan))
-    return info, plan
-
-
-def _root(plan) -> str:
-    """The dataset root: ``""`` when dataset.json is at the top, else the one top-level folder holding it."""
-    if not plan:
-        raise ArchiveError("the archive is empty", reason="layout")
-    tops = sorted({parts[0] for _, parts, _ in plan})
-    top_files = {parts[0] for m, parts, _ in plan if len(parts) == 1 and not m.is_dir}
-    if MANIFEST in top_files:
-        return ""
-    if len(tops) == 1 and tops[0] not in top_files:
-        if any(parts == (tops[0], MANIFEST) and not m.is_dir for m, parts, _ in plan):
-            return tops[0]
-        raise ArchiveError(f"no {MANIFEST} in the archive's one top-level folder {tops[0]!r}", reason="layout")
-    listed = ", ".join(repr(t) for t in tops[:10]) + (", ..." if len(tops) > 10 else "")
-    raise ArchiveError(f"the dataset ({MANIFEST}) must be at the archive's root or inside exactly one top-level "
-                       f"folder; the top level holds {listed}", reason="layout")
-
-
-def _write(reader, plan, dest: Path, limits: ArchiveLimits) -> None:
-    """Write the planned members under ``dest``, counting the real bytes against the limits."""
-    total = 0
-    flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0)
-    for member, parts, handle in plan:
-        target = dest.joinpath(*parts)
-        if member.is_dir:
-            target.mkdir(mode=0o755, parents=True, exist_ok=True)
-            continue
-        target.parent.mkdir(mode=0o755, parents=True, exist_ok=True)
-        written = 0
-        with reader.open(handle) as src, os.fdopen(os.open(target, flags, 0o644), "wb") as out:
-            while True:
-                chunk = reader.read(src, _CHUNK, member.name)
-                if not chunk:
-                    break
-                written += len(chunk)
-                total += len(chunk)
-                if written > member.size:
-                    raise ArchiveError(f"the member holds more data than its declared {member.size} bytes",
-                                       reason="corrupt", member=member.name)
-                if total > limits.max_total_bytes:
-                    raise ArchiveError(f"the archive holds more than {limits.max_total_bytes} bytes uncompressed",
-                                       reason="too_large", member=member.name)
-                out.write(chunk)
-        if written != member.size:
-            raise ArchiveError(f"truncated member: {written} of its {member.size} bytes", reason="corrupt",
-                               member=member.name)
-
-
 # ---------------------------------------------------------------------------------------------------------- readers
-def _open_reader(path, limits: ArchiveLimits):
+def open_reader(path, limits: ArchiveLimits):
     kind = detect_kind(path)
     return _ZipReader(path, limits) if kind == "zip" else _TarReader(path, kind, limits)
 
@@ -463,7 +241,7 @@ class _TarReader:
             raise ArchiveError(f"corrupt or truncated {what} archive ({_why(e)})", reason="corrupt",
                                member=member) from None
 
-    def entries(self) -> Iterator[_Entry]:
+    def entries(self) -> Iterator[Entry]:
         while True:
             ti = self._call(self._tar.next)
             if ti is None:
@@ -473,18 +251,18 @@ class _TarReader:
         self._guard.sniff = False
 
     @staticmethod
-    def _entry(ti: tarfile.TarInfo) -> _Entry:
+    def _entry(ti: tarfile.TarInfo) -> Entry:
         if ti.sparse is not None:
-            return _Entry(ti.name, None, ti.size, ti, ("special", "sparse files are refused"))
+            return Entry(ti.name, None, ti.size, ti, ("special", "sparse files are refused"))
         if ti.type in _TAR_FILE_TYPES:
-            return _Entry(ti.name, "file", ti.size, ti)
+            return Entry(ti.name, "file", ti.size, ti)
         if ti.type == tarfile.DIRTYPE:
-            return _Entry(ti.name, "dir", ti.size, ti)
+            return Entry(ti.name, "dir", ti.size, ti)
         reason, problem = _TAR_REFUSED.get(ti.type, ("special", f"member type {ti.type!r} is neither a regular file "
                                                                 f"nor a folder"))
         if reason == "link":
             problem += f" (-> {_show(ti.linkname)})"
-        return _Entry(ti.name, None, ti.size, ti, (reason, problem))
+        return Entry(ti.name, None, ti.size, ti, (reason, problem))
 
     def _check_end(self) -> None:
         """After the last member: the block that ended the archive must be the zero end-of-archive marker, and
@@ -498,7 +276,7 @@ class _TarReader:
             raise ArchiveError(f"corrupt archive: an unreadable header at byte {start}", reason="corrupt")
         tail = 0
         while True:
-            data = self._call(lambda: self._guard.read(_CHUNK))
+            data = self._call(lambda: self._guard.read(CHUNK))
             if not data:
                 return
             tail += len(data)
@@ -540,7 +318,7 @@ class _ZipReader:
     def __exit__(self, *exc) -> None:
         self._zip.close()
 
-    def entries(self) -> Iterator[_Entry]:
+    def entries(self) -> Iterator[Entry]:
         for zi in self._zip.infolist():
             raw = zi.orig_filename  # before zipfile cuts the name at a NUL
             mode = zi.external_attr >> 16
@@ -555,7 +333,7 @@ class _ZipReader:
                 refusal = ("unsupported", "encrypted members are refused")
             elif zi.compress_type not in _ZIP_METHODS:
                 refusal = ("unsupported", f"compression method {zi.compress_type} is not supported")
-            yield _Entry(raw, "dir" if is_dir else "file", zi.file_size, zi, refusal,
+            yield Entry(raw, "dir" if is_dir else "file", zi.file_size, zi, refusal,
                          compressed=None if is_dir else zi.compress_size)
 
     def open(self, handle: zipfile.ZipInfo):

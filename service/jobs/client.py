@@ -1,4 +1,4 @@
-"""`blendsplat jobs`: a command-line client of the training jobs' REST API (service/jobs_api.py).
+"""`blendsplat jobs`: a command-line client of the training jobs' REST API (service/jobs/api.py).
 
 Two layers:
 
@@ -8,7 +8,7 @@ Two layers:
   them (404 for the route, not for the job) or when the stream keeps failing, by polling the job every second.
   Errors are typed: :class:`ApiError` (an HTTP error answer, with the server's code, message and field),
   :class:`ConnectionFailed`, :class:`EventsUnavailable`, :class:`WaitTimeout`.
-- the commands (``blendsplat jobs ...``) are :mod:`service.jobs_cli`'s.
+- the commands (``blendsplat jobs ...``) are :mod:`service.jobs.cli`'s.
 
 Conventions (docs/architecture.md): results go to stdout (the job's JSON with ``--json``, else a short summary);
 progress bars (tqdm, only when stderr is a terminal), state changes and errors go to stderr. Exit codes: 0
@@ -32,12 +32,13 @@ import secrets
 import tarfile
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 from urllib.parse import quote, urlsplit
 
 import httpx
+
+from .sse import Event, parse_events
 
 DEFAULT_SERVER = "http://127.0.0.1:8080"
 SERVER_ENV, KEY_ENV = "BLENDSPLAT_SERVER", "BLENDSPLAT_API_KEY"
@@ -106,16 +107,6 @@ class WaitTimeout(ClientError):
 
 
 # ------------------------------------------------------------------------------------------------------ client
-@dataclass
-class Event:
-    """One server-sent event: ``id``, ``event`` (progress, state, preview, log; ``end`` closes a finished job's
-    stream) and its JSON ``data``."""
-
-    event: str
-    data: dict[str, Any] = field(default_factory=dict)
-    id: str | None = None
-
-
 def server_url(text: str) -> str:
     """The server's base URL, checked: http(s)://host[:port][/prefix], no credentials, no query."""
     parts = urlsplit(text.strip())
@@ -369,34 +360,6 @@ class JobsClient:
                 on_job(job)
             if job.get("state") in TERMINAL:
                 return job
-
-
-def parse_events(lines: Iterator[str]) -> Iterator[Event]:
-    """Server-sent events from the stream's lines (the WHATWG event-stream format): ``id:``, ``event:``,
-    ``data:`` (lines joined; one JSON object here), comments and ``retry:`` skipped; a blank line dispatches."""
-    kind, data, event_id = "message", [], None
-    for raw in lines:
-        line = raw.rstrip("\r")
-        if not line:
-            if data:
-                text = "\n".join(data)
-                try:
-                    value = json.loads(text)
-                except ValueError:
-                    value = {"text": text}
-                yield Event(kind, value if isinstance(value, dict) else {"value": value}, event_id)
-            kind, data = "message", []
-            continue
-        if line.startswith(":"):
-            continue
-        name, _, value = line.partition(":")
-        value = value[1:] if value.startswith(" ") else value
-        if name == "data":
-            data.append(value)
-        elif name == "event":
-            kind = value or "message"
-        elif name == "id" and "\0" not in value:
-            event_id = value  # the last event id persists until another one replaces it
 
 
 # ---------------------------------------------------------------------------------------------- the commands

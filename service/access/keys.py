@@ -1,4 +1,5 @@
-"""API keys: the ``api_keys`` table of the job database and :class:`KeyStore`.
+"""API keys: the ``api_keys`` table of the service database (:mod:`service.db`, shared with the job store) and
+:class:`KeyStore`.
 
 A key is ``bsk_<id>_<secret>``: ``id`` (10 hex characters) names it in lists, logs and audit lines; ``secret``
 (32 random bytes, URL-safe base64) is shown once, when the key is created, and stored only as its SHA-256. A
@@ -8,8 +9,8 @@ of scopes (:data:`SCOPES`); a revoked key keeps its row (its id stays in the aud
 A key made elsewhere (``admin_key``, e.g. ``openssl rand -hex 32`` in a Kubernetes Secret) may have any form of
 16 to 512 printable characters: its id is the start of its SHA-256 and the whole key is hashed.
 
-The job database is shared by every replica and worker (PostgreSQL in a cluster), so a key created or revoked
-through one replica holds on all of them (each caches a verified key for :data:`CACHE_SECONDS`).
+The database is shared by every replica and worker (PostgreSQL in a cluster), so a key created or revoked through
+one replica holds on all of them (each caches a verified key for :data:`service.access.auth.CACHE_SECONDS`).
 """
 
 from __future__ import annotations
@@ -23,10 +24,11 @@ from collections.abc import Iterable
 from datetime import UTC, datetime
 
 from sqlalchemy import Engine, Index, String, select
-from sqlalchemy.orm import Mapped, mapped_column, sessionmaker
+from sqlalchemy.orm import Mapped, mapped_column
 
+from ..db import Base, Sessions, open_engine
 from ..errors import InvalidArgument, NotFound
-from .models import Base
+from ..settings import API_KEY_PATTERN
 
 PREFIX = "bsk"
 SCOPES = ("render", "avatars:write", "jobs", "admin")
@@ -38,7 +40,7 @@ SCOPE_HELP = {
 }
 TENANT_PATTERN = re.compile(r"^[a-z0-9][a-z0-9._-]{0,62}$")
 _TOKEN = re.compile(r"^bsk_([0-9a-f]{10})_([A-Za-z0-9_-]{43})$")
-_EXTERNAL = re.compile(r"^[!-~]{16,512}$")  # a key made elsewhere: printable ASCII, no spaces
+_EXTERNAL = API_KEY_PATTERN  # a key made elsewhere: printable ASCII, no spaces (the settings check admin_key with it)
 
 
 class KeyRecord(Base):
@@ -115,12 +117,33 @@ def check_tenant(tenant: str) -> str:
 
 
 class KeyStore:
-    """The ``api_keys`` table over a job database engine (migrated to head by :class:`~service.jobs.JobStore`)."""
+    """The ``api_keys`` table over an engine of the service database whose schema is at head (:func:`open`, or
+    the job store's engine: one database)."""
 
     def __init__(self, engine: Engine):
         self.engine = engine
-        self._sessions = sessionmaker(engine, expire_on_commit=False)
-        self._writes = sessionmaker(engine.execution_options(sqlite_begin="IMMEDIATE"), expire_on_commit=False)
+        self._db = Sessions(engine)
+        self._sessions = self._db.reads
+        self._writes = self._db.write
+        self._owned = False
+
+    @classmethod
+    def open(cls, url: str) -> KeyStore:
+        """Connect to the database at ``url`` and migrate it to head (:func:`service.db.open_engine`); :meth:`close`
+        disposes of the engine."""
+        store = cls(open_engine(url))
+        store._owned = True
+        return store
+
+    def close(self) -> None:
+        if self._owned:
+            self.engine.dispose()
+
+    def __enter__(self) -> KeyStore:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
 
     def create(self, tenant: str, scopes: Iterable[str], name: str = "", *, secret: str | None = None
                ) -> tuple[ApiKey, str]:
@@ -139,7 +162,7 @@ class KeyStore:
             key_id, secret_part = parsed
         record = KeyRecord(id=key_id, secret_sha256=_digest(secret_part), tenant=tenant, scopes=" ".join(chosen),
                            name=name, created_at=datetime.now(UTC), revoked_at=None)
-        with self._writes.begin() as session:
+        with self._writes() as session:
             existing = session.get(KeyRecord, key_id)
             if existing is not None:
                 if secret is not None and hmac.compare_digest(existing.secret_sha256, record.secret_sha256):
@@ -170,7 +193,7 @@ class KeyStore:
             return [ApiKey.of(r) for r in session.scalars(query)]
 
     def revoke(self, key_id: str) -> ApiKey:
-        with self._writes.begin() as session:
+        with self._writes() as session:
             record = session.get(KeyRecord, key_id)
             if record is None:
                 raise NotFound(f"no API key {key_id!r}", field="key_id")

@@ -1,7 +1,7 @@
 """Job webhooks: a signed POST to the job's ``webhook_url`` on every state change, retried until a 2xx.
 
 **What is sent.** The job store writes one ``webhook_deliveries`` row per state change of a job whose spec has a
-``webhook_url`` (in the state change's own transaction: :mod:`service.jobs.store`). Its body is JSON in the shape
+``webhook_url`` (in the state change's own transaction: :mod:`service.jobs.outbox`). Its body is JSON in the shape
 of the `Standard Webhooks <https://www.standardwebhooks.com>`_ spec::
 
     {"type": "job.succeeded", "timestamp": "2026-...+00:00",
@@ -56,11 +56,11 @@ from urllib.parse import urlsplit, urlunsplit
 
 import httpx
 
-from .jobs.models import DeliveryStatus, WebhookDelivery
+from .models import DeliveryStatus, WebhookDelivery
 
 if TYPE_CHECKING:
-    from .jobs import JobStore
-    from .settings import Settings
+    from ..settings import Settings
+    from .store import JobStore
 
 log = logging.getLogger(__name__)
 

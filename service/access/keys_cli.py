@@ -1,8 +1,9 @@
-"""`blendsplat keys create|list|revoke`: API keys in the job database (service/jobs/keys.py), managed by whoever can
-reach that database (an operator, a Kubernetes Job): no key is needed to run it, and it never goes over the API.
+"""`blendsplat keys create|list|revoke`: API keys in the service database (service/access/keys.py), managed by
+whoever can reach that database (an operator, a Kubernetes Job): no key is needed to run it, and it never goes over
+the API.
 
 A key is printed once, when it is created. A revoked key stops working at once on the replica that serves the
-next request after its cache entry expires (at most ``service.auth.CACHE_SECONDS``).
+next request after its cache entry expires (at most ``service.access.auth.CACHE_SECONDS``).
 """
 
 from __future__ import annotations
@@ -14,19 +15,18 @@ from pathlib import Path
 
 
 def _key_store(args: argparse.Namespace):
-    from .jobs import JobStore, KeyStore
-    from .settings import Settings
+    from ..settings import Settings
+    from .keys import KeyStore
 
     overrides = {k: v for k, v in (("data_dir", args.data_dir), ("jobs_url", args.jobs_url)) if v is not None}
-    jobs = JobStore.open(Settings(**overrides).jobs_database_url)
-    return jobs, KeyStore(jobs.engine)
+    return KeyStore.open(Settings(**overrides).jobs_database_url)
 
 
 def cmd_keys(args: argparse.Namespace) -> int:
+    from ..errors import ServiceError
     from .auth import TRUSTED, Access
-    from .errors import ServiceError
 
-    jobs, keys = _key_store(args)
+    keys = _key_store(args)
     try:
         if args.keys_command == "create":
             key, token = keys.create(args.tenant, args.scope, args.name or "")
@@ -53,12 +53,12 @@ def cmd_keys(args: argparse.Namespace) -> int:
         print(f"blendsplat: error: {e}", file=sys.stderr)
         return 2
     finally:
-        jobs.close()
+        keys.close()
     return 0
 
 
 def add_parser(commands) -> None:
-    from .jobs.keys import SCOPE_HELP, SCOPES
+    from .keys import SCOPE_HELP, SCOPES
 
     k = commands.add_parser("keys", help="create, list and revoke API keys (in the job database)",
                             description=__doc__.split("\n\n")[0])

@@ -1,15 +1,18 @@
-"""Alembic's environment for the job database (see ``__init__.py``: configured in code, no alembic.ini).
+"""Alembic's environment for the service database (configured in code by :mod:`service.db`, no alembic.ini).
 
-Online runs use the connection handed over in ``config.attributes["connection"]`` (what :func:`migrate` does) or
-else connect to the configured ``sqlalchemy.url`` through the store's engine factory (WAL, busy timeout). Offline
+Online runs use the connection handed over in ``config.attributes["connection"]`` (what :func:`service.db.migrate`
+does) or else connect to the configured ``sqlalchemy.url`` through the engine factory (WAL, busy timeout). Offline
 runs (``--sql``) render the SQL for the configured URL's dialect. Never configures logging: the host process does.
+The target metadata (for autogenerate) is every table of the database: the job store's and the API keys'.
 """
 
 from __future__ import annotations
 
 from alembic import context
 
-from service.jobs.models import Base, make_engine
+import service.access.keys  # noqa: F401 - registers api_keys on Base.metadata
+import service.jobs.models  # noqa: F401 - registers jobs, job_events, webhook_deliveries on Base.metadata
+from service.db import Base, make_engine
 
 config = context.config
 target_metadata = Base.metadata

@@ -1,0 +1,71 @@
+"""A job's work folder ``<settings.work_dir>/<job id>/``: the files the worker writes there and the API serves, how
+an image there is replaced, and the commit of the trained bundle to the bundle store.
+
+The Trainer writes ``checkpoints/``, ``log.jsonl``, ``summary.json``, ``curves.png``, and ``report.json`` and
+``contact_sheet.png`` when the dataset has held-out frames; the worker adds :data:`PREVIEW` (the latest preview,
+replaced atomically), :data:`TRUTH` (the dataset's image of the preview's frame), :data:`BUNDLE` (the trained
+bundle; a copy of it is what enters the bundle store) and, for a job with a ``resolution``, the resampled dataset
+(:mod:`service.jobs.resize`). :data:`ARTEFACTS` names the ones ``GET /v1/jobs/{id}/artefacts/{name}`` serves.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import secrets
+import shutil
+from pathlib import Path
+
+from render_core.atomic import publish
+
+from ..access.auth import ADMIN_TENANT, PermissionDenied
+from ..store import BundleStore, Owner
+
+log = logging.getLogger(__name__)
+
+PREVIEW = "preview.png"
+TRUTH = "truth.png"  # the dataset's image of the preview's frame (written with the first preview)
+BUNDLE = "avatar.bundle"
+# name in the URL -> (file in the work folder, media type)
+ARTEFACTS: dict[str, tuple[str, str]] = {
+    "report": ("report.json", "application/json"),
+    "summary": ("summary.json", "application/json"),
+    "curves": ("curves.png", "image/png"),
+    "contact-sheet": ("contact_sheet.png", "image/png"),
+    "preview": (PREVIEW, "image/png"),
+    "truth": (TRUTH, "image/png"),
+    "log": ("log.jsonl", "application/x-ndjson"),
+}
+
+
+def write_image(workdir: Path, name: str, pixels) -> None:
+    """An image of the work folder (``pixels``: [H, W, 3] uint8), replaced atomically: written beside under a
+    ``.png`` name, then renamed over ``name``. OSError when it could not be written (nothing is left behind)."""
+    from render_core.media.files import write_image as write_file
+
+    tmp = workdir / f".{name}.{secrets.token_hex(6)}.png"
+    try:
+        write_file(tmp, pixels)
+        publish(tmp, workdir / name)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def commit_bundle(bundles: BundleStore, bundle: Path, avatar_id: str, tenant: str | None) -> dict:
+    """A copy of the trained bundle into the bundle store under ``avatar_id`` (validated, published atomically,
+    recorded as verified, owned by the job's tenant); the manifest. PermissionDenied when the id is taken by
+    another tenant's avatar meanwhile (checked at submission too)."""
+    owner = Owner(tenant or ADMIN_TENANT)
+    existing = bundles.owner_if_exists(avatar_id)
+    if existing is not None and tenant is not None and existing.tenant != tenant:
+        raise PermissionDenied(f"avatar {avatar_id!r} belongs to another tenant; not replaced", field="avatar_id")
+    fd, staged = bundles.staging()
+    try:
+        with os.fdopen(fd, "wb") as out, open(bundle, "rb") as src:
+            shutil.copyfileobj(src, out, 1 << 20)
+    except BaseException:
+        staged.unlink(missing_ok=True)
+        raise
+    manifest = bundles.commit(staged, avatar_id, owner)
+    log.info("avatar %r committed to the bundle store (%s)", avatar_id, manifest.get("digest"))
+    return manifest
