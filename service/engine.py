@@ -57,14 +57,15 @@ from render_core.media.codecs import Encoder, make_encoder
 from render_core.media.pixels import to_rgba8
 
 from . import params
-from .access.auth import ADMIN_TENANT, TRUSTED, Access, Principal
+from .access.auth import TRUSTED, Access, Principal
 from .access.limits import no_release
 from .cache import AvatarCache, Loaded
 from .errors import InvalidArgument, NotFound, ResourceExhausted, ServiceError, Unavailable, to_status
+from .intake import Spooled, UploadIntake
 from .metrics import STAGES, Metrics
 from .settings import Settings
 from .store import ID_PATTERN as AVATAR_ID_PATTERN  # noqa: F401 - the transports' avatar id pattern
-from .store import BundleStore, Owner, check_id
+from .store import BundleStore, check_id
 
 log = logging.getLogger(__name__)
 
@@ -296,6 +297,7 @@ class Engine:
         threads = settings.render_threads or len(os.sched_getaffinity(0))
         self.cache = AvatarCache(self.store, settings.cache_bytes, self.metrics, settings.backend, threads)
         self.access = access or Access.trusted(settings)
+        self.intake = UploadIntake(self.access)
         self.sessions: dict[str, Session] = {}
         self.draining = False  # not ready; new streams are refused
         self.frames_closed = False  # open streams take no new frames either
@@ -499,8 +501,7 @@ class Engine:
         principal.check_read(f"avatar {avatar_id!r}", owner.tenant, owner.public)
 
     def _check_write(self, principal: Principal, avatar_id: str, field: str = "id") -> None:
-        if not principal.admin and self.store.path(check_id(avatar_id, field)).is_file():
-            principal.check_write(f"avatar {avatar_id!r}", self.store.owner(avatar_id).tenant)
+        self.store.writable(check_id(avatar_id, field), principal.writer)
 
     async def load(self, avatar_id: str, principal: Principal = TRUSTED) -> pb.AvatarInfo:
         """Load an avatar into this replica's cache (NotFound; FailedPrecondition for a broken bundle)."""
@@ -520,36 +521,28 @@ class Engine:
 
     async def replace(self, avatar_id: str, chunks: AsyncIterable[bytes], declared: int | None = None,
                       principal: Principal = TRUSTED) -> pb.AvatarInfo:
-        """Create or replace an avatar's bundle from an upload's bytes (``declared``: its announced size, when
-        known). The upload is staged and fully validated before it replaces anything: an invalid or oversize one
-        (InvalidArgument naming ``bundle``) leaves the store unchanged. The cached copy is dropped, so new
-        sessions get the new bundle; running ones keep theirs."""
+        """The one avatar write from a client: create or replace an avatar's bundle from an upload's bytes
+        (``declared``: its announced size, when known). Ownership first (:meth:`BundleStore.writable`: another
+        tenant's avatar is refused before a byte is read), then the upload intake (the limit, admission, the body
+        spooled off the event loop, the tenant's quota on what arrived), then validation and the commit (the
+        rule checked again), the audit and the cache invalidation. An invalid, oversize or over-quota upload
+        leaves the store unchanged; new sessions get the new bundle, running ones keep theirs."""
         check_id(avatar_id)
-        exists = self.store.path(avatar_id).is_file()
-        if exists:  # a new id is the caller's; an existing one must be its tenant's
-            self._check_write(principal, avatar_id)
-        previous = self.store.owner(avatar_id) if exists else None
-        owner = previous if principal.admin and previous is not None else Owner(principal.tenant or ADMIN_TENANT)
-        limit = self.settings.max_upload_bytes
-        if declared is not None and declared > limit:
-            raise InvalidArgument(f"the upload is {declared} bytes; the limit is {limit}", field="bundle")
-        await asyncio.to_thread(self.access.admit_upload, principal, declared or 0)
-        fd, staged = self.store.staging()
-        try:
-            size = 0
-            with os.fdopen(fd, "wb") as f:
-                async for chunk in chunks:
-                    size += len(chunk)
-                    if size > limit:
-                        raise InvalidArgument(f"the upload exceeds the limit of {limit} bytes", field="bundle")
-                    f.write(chunk)
-            self.access.check_quota(principal, size)
-            await asyncio.to_thread(self.store.commit, staged, avatar_id, owner)
-        finally:
-            staged.unlink(missing_ok=True)
-        self.access.audit(principal, "avatar.replace" if exists else "avatar.create", avatar_id, bytes=size)
+        writer = principal.writer
+        self.store.writable(avatar_id, writer)
+        spooled = await self.intake.receive(principal, chunks, self.store.staging_path(),
+                                            limit=self.settings.max_upload_bytes, field="bundle", declared=declared)
+        _, existed = await asyncio.to_thread(self.store.put, spooled.path, avatar_id, writer)
+        self.access.audit(principal, "avatar.replace" if existed else "avatar.create", avatar_id, bytes=spooled.size)
         self.cache.unload(avatar_id)
         return self.avatar_info(avatar_id, principal)
+
+    async def receive_upload(self, principal: Principal, chunks: AsyncIterable[bytes], *, limit: int, field: str,
+                             declared: int | None = None) -> Spooled:
+        """A request body through the upload intake (:class:`~service.intake.UploadIntake`) into a private file
+        of the bundle store's folder; the caller removes the file when done with it."""
+        return await self.intake.receive(principal, chunks, self.store.staging_path(), limit=limit, field=field,
+                                         declared=declared)
 
     async def delete(self, avatar_id: str, principal: Principal = TRUSTED) -> None:
         """Delete an avatar: its bundle and the files beside it (verification record, owner), then its cached copy

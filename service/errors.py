@@ -78,6 +78,12 @@ class Unavailable(ServiceError):
     code = pb.UNAVAILABLE
 
 
+class PermissionDenied(ServiceError):
+    """A valid key without the scope, or another tenant's resource: HTTP 403, gRPC PERMISSION_DENIED."""
+
+    code = pb.PERMISSION_DENIED
+
+
 class BodyTooLarge(InvalidArgument):
     """HTTP only: a request body over its route's limit (413; the connection is closed, the rest never read)."""
 

@@ -23,16 +23,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from .errors import InvalidArgument
+from .errors import BodyTooLarge, InvalidArgument
 
 if TYPE_CHECKING:
     from .access.auth import Access, Principal
 
 WRITE_BATCH = 1 << 20  # received bytes are written to disk in batches of this size, off the event loop
-
-
-class BodyTooLarge(InvalidArgument):
-    """A body over its limit (declared or received); ``field`` names the part."""
 
 
 @dataclass(frozen=True)
@@ -76,7 +72,7 @@ async def spool(chunks: AsyncIterable[bytes], path: Path, limit: int, field: str
                 continue
             size += len(chunk)
             if size > limit:
-                raise BodyTooLarge(f"the upload exceeds the limit of {limit} bytes", field=field)
+                raise BodyTooLarge(f"the upload is larger than {limit} bytes", field=field)
             digest.update(chunk)
             pending.append(bytes(chunk))
             pending_bytes += len(chunk)
@@ -97,7 +93,7 @@ class UploadIntake:
     def check_declared(self, declared: int | None, limit: int, field: str) -> None:
         """BodyTooLarge naming ``field`` when the announced size is already over ``limit``."""
         if declared is not None and declared > limit:
-            raise BodyTooLarge(f"the upload is {declared} bytes; the limit is {limit}", field=field)
+            raise BodyTooLarge(f"the upload is {declared} bytes, larger than {limit} bytes", field=field)
 
     async def admit(self, principal: Principal, declared: int | None) -> None:
         """Admission before the body: the key's upload count and the tenant's quota with the declared size."""

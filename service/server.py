@@ -115,7 +115,7 @@ class Service:
         store = BundleStore(s.bundle_dir)
         access = Access(s, KeyStore(jobs.engine), on_limit_failure=self.metrics.limit_failures.inc,
                         usage=[store.tenant_bytes, uploads.tenant_bytes])
-        self.training = Training(s, jobs, uploads, access=access, owner_of_avatar=store.owner_if_exists,
+        self.training = Training(s, jobs, uploads, access=access, writable=store.writable,
                                  metrics=self.metrics)
         self.engine = engine = Engine(s, self.metrics, access=access, store=store)
         await asyncio.to_thread(access.bootstrap)

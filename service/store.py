@@ -33,7 +33,7 @@ from render_core.atomic import atomic_path, publish
 from render_core.bundle import BundleMappingError, read_manifest, validate_bundle
 from render_core.errors import BundleError
 
-from .errors import InvalidArgument, NotFound, ResourceExhausted, Unavailable
+from .errors import InvalidArgument, NotFound, PermissionDenied, ResourceExhausted, Unavailable
 
 ID_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
 SUFFIX = ".bundle"
@@ -50,6 +50,16 @@ class Owner:
 
     tenant: str | None
     public: bool = False
+
+
+@dataclass(frozen=True)
+class Writer:
+    """Who writes an avatar: its tenant (the admin tenant for admin keys and the process itself) and whether it
+    holds the admin scope. Every avatar write (the PUT, a training job's commit, the job submission's check)
+    goes through :meth:`BundleStore.writable` with one."""
+
+    tenant: str
+    admin: bool
 
 
 def check_id(avatar_id: str, field: str = "avatar_id") -> str:
@@ -123,6 +133,12 @@ class BundleStore:
         fd, name = tempfile.mkstemp(prefix=STAGED_PREFIX, suffix=".tmp", dir=self.root)
         return fd, Path(name)
 
+    def staging_path(self) -> Path:
+        """A fresh path for an upload in progress, not yet created (the intake creates it exclusively; same
+        folder: the rename is atomic)."""
+        self.ensure()
+        return self.root / f"{STAGED_PREFIX}{os.urandom(8).hex()}.tmp"
+
     def clean_stale(self, older_than: float) -> list[str]:
         """Remove the temporary files a killed process left in the store (staged uploads, the atomic writers'
         ``.<name>.<hex>.tmp``) not modified for ``older_than`` seconds: an upload in progress elsewhere (another
@@ -141,6 +157,33 @@ class BundleStore:
             except FileNotFoundError:
                 pass  # someone else finished or removed it
         return removed
+
+    def writable(self, avatar_id: str, writer: Writer) -> tuple[Owner, bool]:
+        """The one ownership rule of an avatar write: ``writer`` may write ``avatar_id`` when the id is free, or
+        the avatar is its tenant's, or it is an admin (PermissionDenied otherwise). The owner after the write: the
+        writer's tenant, except that an admin replacing an existing avatar keeps that avatar's owner (an admin
+        fixing a tenant's avatar does not take it). Returns (that owner, whether the avatar exists)."""
+        existing = self.owner_if_exists(check_id(avatar_id))
+        if existing is None:
+            return Owner(writer.tenant), False
+        if writer.admin:
+            return existing, True
+        if existing.tenant is None or existing.tenant != writer.tenant:
+            raise PermissionDenied(f"avatar {avatar_id!r} belongs to another tenant"
+                                   + (" (public: only an admin key may change it)" if existing.tenant is None
+                                      or existing.public else ""), field="authorization")
+        return existing, True
+
+    def put(self, staged: Path, avatar_id: str, writer: Writer) -> tuple[dict, bool]:
+        """Validate a staged bundle and publish it as ``avatar_id`` for ``writer`` (:meth:`writable`'s rule, checked
+        again just before the commit); the manifest and whether it replaced an avatar. The staged file is gone
+        after, whatever happens."""
+        try:
+            owner, existed = self.writable(avatar_id, writer)
+        except BaseException:
+            staged.unlink(missing_ok=True)
+            raise
+        return self.commit(staged, avatar_id, owner), existed
 
     def commit(self, staged: Path, avatar_id: str, owner: Owner | None = None) -> dict:
         """Validate a staged upload, move it into place as ``avatar_id`` and record it as verified (and its

@@ -27,9 +27,11 @@ from render_core.bundle import write_bundle
 from render_core.tools.synth import synth_avatar
 from service.access.auth import CACHE_SECONDS
 from service.access.http import OPEN_PATHS
-from service.access.keys import SCOPES, KeyStore
+from service.access.keys import ADMIN_TENANT, SCOPES, KeyStore
+from service.errors import InvalidArgument, PermissionDenied
 from service.grpc_server import SCOPES as RPC_SCOPES
 from service.http.app import routes as app_routes
+from service.jobs.artefacts import job_writer
 
 SERVICE = pb.DESCRIPTOR.services_by_name["RenderService"]
 QUOTA = 1 << 20  # tenant_storage_bytes of the module's server
@@ -274,6 +276,72 @@ def test_a_tenant_cannot_store_past_its_quota(server, http, tmp_path):
     r = http.put("/v1/avatars/too-big", content=big, headers=auth(key))
     assert r.status_code == 429 and "quota" in r.json()["error"]["message"], r.text
     assert not (server.service.settings.bundle_dir / "too-big.bundle").exists()
+
+
+def test_a_chunked_dataset_upload_over_the_quota_is_refused_after_its_body_and_nothing_is_kept(server, http,
+                                                                                             tiny_video_archive):
+    """A chunked body declares no length, so it is admitted on 0 bytes: the quota is checked again on what arrived
+    (before anything is extracted), the refusal names the quota, and the upload store keeps nothing."""
+    key = make_key(server, "chunked", "jobs")
+    uploads = server.service.training.uploads
+
+    def chunked(data: bytes):
+        boundary = "q9q9q9"
+        head = (f"--{boundary}\r\nContent-Disposition: form-data; name=\"file\"; filename=\"v.tgz\"\r\n"
+                "Content-Type: application/gzip\r\n\r\n").encode()
+        body = head + data + f"\r\n--{boundary}--\r\n".encode()
+        headers = auth(key) | {"Content-Type": f"multipart/form-data; boundary={boundary}"}
+        return http.post("/v1/uploads", content=iter([body[i:i + 65536] for i in range(0, len(body), 65536)]),
+                         headers=headers)
+
+    before = {u.id for u in uploads.list()}
+    padding = b"\0" * (QUOTA + 4096)  # gzip ignores nothing: a body over the quota must be refused on its size
+    r = chunked(padding)
+    assert r.status_code in (413, 429, 507) and "quota" in r.json()["error"]["message"], r.text
+    assert {u.id for u in uploads.list()} == before
+    assert not [p for p in uploads.root.iterdir() if p.name.startswith(".")]  # no spool, no staging left
+    ok = chunked(tiny_video_archive)  # under the quota: accepted
+    assert ok.status_code == 201, ok.text
+    assert {u.id for u in uploads.list()} - before == {ok.json()["upload_id"]}
+
+
+def test_one_owner_rule_for_the_avatar_put_the_job_submission_and_the_workers_commit(server, http, tmp_path):
+    """Another tenant's avatar: refused by the PUT, by the job submission's check and by the worker's commit
+    alike; an admin replace (PUT or an admin job's commit) keeps the avatar's owner."""
+    from service.jobs.artefacts import commit_bundle
+    from service.store import Owner
+
+    store = server.service.engine.store
+    a, b = make_key(server, "owner-a", "avatars:write", "render", "jobs"), make_key(server, "owner-b",
+                                                                                  "avatars:write", "jobs")
+    data = bundle_bytes(tmp_path, 5)
+    assert http.put("/v1/avatars/owned", content=data, headers=auth(a)).status_code == 201
+    assert store.owner("owned") == Owner("owner-a")
+    # tenant B: the PUT, the job submission and a commit are refused, and nothing changes
+    assert http.put("/v1/avatars/owned", content=data, headers=auth(b)).status_code == 403
+    upload = server.service.training.uploads.list()
+    if upload:
+        r = http.post("/v1/jobs", json={"upload_id": upload[0].id, "avatar_id": "owned"}, headers=auth(b))
+        assert r.status_code in (403, 404), r.text  # 404: the upload is another tenant's; never accepted
+    (tmp_path / "trained.bundle").write_bytes(data)
+    with pytest.raises(PermissionDenied):
+        commit_bundle(store, tmp_path / "trained.bundle", "owned", "owner-b")
+    with pytest.raises(PermissionDenied):
+        server.service.training.writable("owned", job_writer("owner-b"))
+    # an admin replace keeps tenant A's ownership, by the PUT and by an admin job's commit
+    assert http.put("/v1/avatars/owned", content=data, headers=server.headers).status_code == 201
+    assert store.owner("owned") == Owner("owner-a")
+    commit_bundle(store, tmp_path / "trained.bundle", "owned", ADMIN_TENANT)
+    assert store.owner("owned") == Owner("owner-a")
+    assert http.get("/v1/avatars/owned", headers=auth(a)).status_code == 200
+    # tenant A's own job commit keeps it A's
+    commit_bundle(store, tmp_path / "trained.bundle", "owned", "owner-a")
+    assert store.owner("owned") == Owner("owner-a")
+
+
+def test_keys_of_the_admin_tenant_hold_the_admin_scope(server):
+    with pytest.raises(InvalidArgument, match="admin scope"):
+        server.keys.create(ADMIN_TENANT, ["jobs"])
 
 
 # ------------------------------------------------------------------------------------------- keys, audit

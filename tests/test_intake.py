@@ -62,7 +62,7 @@ def test_a_chunked_body_over_the_quota_is_refused_after_it_arrived_and_nothing_i
 
 def test_the_limit_is_enforced_on_the_declared_and_the_received_size(tmp_path):
     access = Quota(quota=10**9)
-    with pytest.raises(BodyTooLarge, match="limit"):
+    with pytest.raises(BodyTooLarge, match="larger than 10 bytes"):
         asyncio.run(UploadIntake(access).receive(None, _body(b"x"), tmp_path / "a", limit=10, field="bundle",
                                                  declared=11))
     assert access.calls == [] and not (tmp_path / "a").exists()  # refused before admission and before a byte
@@ -110,3 +110,33 @@ def test_a_client_that_goes_away_leaves_nothing(tmp_path):
 
     asyncio.run(main())
     assert not (tmp_path / "d").exists()
+
+
+def test_the_avatar_put_spools_its_body_off_the_event_loop(tmp_path, monkeypatch):
+    """Engine.replace (the avatar PUT) goes through the intake: no byte of the bundle is written on the loop."""
+    from render_core.bundle import write_bundle
+    from render_core.synthetic import synth_avatar
+    from service.engine import Engine
+    from service.settings import Settings
+
+    write_bundle(synth_avatar(gaussians=200, blendshapes=3, seed=2), tmp_path / "a.bundle", precision="fp16")
+    data = (tmp_path / "a.bundle").read_bytes()
+    writers = []
+    real = intake._write
+
+    def spy(out, chunk):
+        writers.append(threading.get_ident())
+        real(out, chunk)
+
+    monkeypatch.setattr(intake, "_write", spy)
+    monkeypatch.setattr(intake, "WRITE_BATCH", 4096)
+    engine = Engine(Settings(data_dir=tmp_path / "data", warmup_size=32))
+
+    async def main():
+        info = await engine.replace("spooled", _body(*[data[i:i + 1000] for i in range(0, len(data), 1000)]),
+                                    len(data))
+        return threading.get_ident(), info
+
+    loop_thread, info = asyncio.run(main())
+    assert info.id == "spooled" and writers and loop_thread not in writers
+    assert sum(1 for p in (tmp_path / "data").rglob("*.tmp")) == 0  # the spool became the bundle

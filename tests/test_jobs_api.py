@@ -512,7 +512,7 @@ def test_the_sweep_removes_orphaned_work_folders_and_leftovers(tmp_path):
     settings = Settings(data_dir=tmp_path / "data", jobs_url=f"sqlite:///{tmp_path / 'data' / 'jobs.db'}")
     jobs, uploads = open_stores(settings)
     training = Training(settings, jobs, uploads, access=Access(settings, KeyStore(jobs.engine)),
-                        owner_of_avatar=lambda avatar_id: None)
+                        writable=lambda avatar_id, writer: None)
     try:
         live = training.jobs.submit({"upload_id": "upl_" + "a" * 20, "avatar_id": "a"}).id
         work = settings.work_dir

@@ -68,6 +68,15 @@ def test_the_tree_keeps_every_contract():
      "avatar-model-layers", "render_core.packed -> render_core.avatar"),
     # a new module must be placed in a layer
     ("render_core/unplaced.py", "", "library-layers", "render_core.unplaced"),
+    # a transport reaching past the engine into the library
+    ("service/http/avatars.py", "\nfrom render_core import deform  # injected\n", "transports-through-the-engine",
+     "service.http.avatars -> render_core.deform"),
+    # settings reading a part of the service
+    ("service/settings.py", "\n\ndef _injected():\n    from .access import keys  # noqa: F401\n",
+     "settings-import-nothing", "service.settings -> service.access.keys"),
+    # a lower wing reaching up: the store importing the engine
+    ("service/store.py", "\n\ndef _injected():\n    from .engine import Engine  # noqa: F401\n", "service-wings",
+     "service.store -> service.engine"),
 ])
 def test_a_broken_layering_breaks_its_contract(tmp_path, module, code, broken, named):
     def sources_only(folder: str, names: list[str]) -> list[str]:

@@ -566,7 +566,7 @@ def test_rest_upload_validates_before_storing(live_server, tmp_path):
         limit, live_server.engine.settings.max_upload_bytes = live_server.engine.settings.max_upload_bytes, 1024
         try:
             r = http.put("/v1/avatars/big", content=data)
-            assert r.status_code == 422 and "limit" in r.json()["error"]["message"]
+            assert r.status_code == 413 and "larger than 1024 bytes" in r.json()["error"]["message"]
         finally:
             live_server.engine.settings.max_upload_bytes = limit
         assert http.put("/v1/avatars/..%2Fescape", content=data).status_code in (404, 422)

@@ -15,10 +15,10 @@ import pytest
 from test_archive import HOSTILE, make_dataset, tar_archive, zip_archive
 
 from render_core.data import validate_dataset
-from service.errors import InvalidArgument, NotFound
+from service.errors import BodyTooLarge, InvalidArgument, NotFound
 from service.jobs import uploads as uploads_module
 from service.jobs.archive import ArchiveError, ArchiveLimits
-from service.jobs.uploads import ID_PATTERN, InvalidDataset, UploadStore, UploadTooLarge
+from service.jobs.uploads import ID_PATTERN, InvalidDataset, UploadStore
 
 
 @pytest.fixture(scope="module")
@@ -108,7 +108,7 @@ def test_a_hostile_archive_is_refused_and_leaves_nothing(tmp_path, dataset, name
 def test_too_large_is_refused_without_reading_the_rest(store, archive):
     raw = archive.read_bytes()
     pulled: list[int] = []
-    with pytest.raises(UploadTooLarge, match="larger than 1000 bytes") as caught:
+    with pytest.raises(BodyTooLarge, match="larger than 1000 bytes") as caught:
         receive(store, raw, max_bytes=1000, size=100, pulled=pulled)
     assert isinstance(caught.value, InvalidArgument) and caught.value.field == "file"
     assert len(pulled) == 11 < len(raw) // 100

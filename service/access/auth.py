@@ -38,16 +38,16 @@ from pathlib import Path
 
 from blendsplat.v1 import render_pb2 as pb
 
-from ..errors import ResourceExhausted, ServiceError
+from ..errors import PermissionDenied, ResourceExhausted, ServiceError
 from ..settings import Settings
-from .keys import ApiKey, KeyStore, parse_token
+from ..store import Writer
+from .keys import ADMIN_TENANT, ApiKey, KeyStore, parse_token
 from .limits import Limits, LocalLimits, limits_for, no_release
 
 log = logging.getLogger(__name__)
 audit_log = logging.getLogger("blendsplat.audit")
 CACHE_SECONDS = 5.0
 ADMIN_KEY_FILE = "admin.key"
-ADMIN_TENANT = "admin"
 WS_PROTOCOL = "blendsplat.v1"  # the WebSocket subprotocol the server answers with
 WS_KEY_PREFIX = "bearer."  # the subprotocol that carries the key: bearer.<key>
 
@@ -59,12 +59,6 @@ class Unauthenticated(ServiceError):
 
     def http_headers(self) -> dict[str, str]:
         return {"WWW-Authenticate": 'Bearer realm="blendsplat"'}
-
-
-class PermissionDenied(ServiceError):
-    """A valid key without the scope, or another tenant's resource: HTTP 403, gRPC PERMISSION_DENIED."""
-
-    code = pb.PERMISSION_DENIED
 
 
 @dataclasses.dataclass(frozen=True)
@@ -88,6 +82,11 @@ class Principal:
             raise PermissionDenied(f"{self.name} lacks the scope {scope!r} (it has "
                                    f"{', '.join(sorted(self.scopes)) or 'none'})", field="authorization")
         return self
+
+    @property
+    def writer(self) -> Writer:
+        """This caller as an avatar writer (:meth:`service.store.BundleStore.writable`)."""
+        return Writer(self.tenant or ADMIN_TENANT, self.admin)
 
     def may_read(self, tenant: str | None, public: bool = False) -> bool:
         return self.admin or public or (tenant is not None and tenant == self.tenant)

@@ -32,6 +32,7 @@ from ..settings import API_KEY_PATTERN
 
 PREFIX = "bsk"
 SCOPES = ("render", "avatars:write", "jobs", "admin")
+ADMIN_TENANT = "admin"  # the admin keys' tenant
 SCOPE_HELP = {
     "render": "list and describe avatars, stream and render frames, load into the cache",
     "avatars:write": "upload, replace, unload and delete avatars",
@@ -150,6 +151,9 @@ class KeyStore:
         """A new key: the record and the whole key (``bsk_<id>_<secret>``, shown once). ``secret``: register a
         key made elsewhere (``parse_token`` must accept it), e.g. the admin key from a Kubernetes Secret."""
         tenant, chosen = check_tenant(tenant), check_scopes(scopes)
+        if tenant == ADMIN_TENANT and "admin" not in chosen:  # the admin tenant's work is admin work (jobs' commits)
+            raise InvalidArgument(f"keys of the {ADMIN_TENANT!r} tenant hold the admin scope; choose another tenant "
+                                  "for this key", field="tenant")
         if len(name) > 255:
             raise InvalidArgument("a key name is at most 255 characters", field="name")
         if secret is None:

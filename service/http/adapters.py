@@ -3,6 +3,7 @@ read, replace or delete one, and the audit, are the engine's (:meth:`~service.en
 
 from __future__ import annotations
 
+import asyncio
 from typing import Annotated
 
 from fastapi import APIRouter, Request
@@ -11,7 +12,8 @@ from fastapi import Path as PathParam
 from ..adapters import MAX_ADAPTER_BYTES, MAX_MANIFEST_BYTES
 from ..engine import AVATAR_ID_PATTERN
 from ..errors import InvalidArgument
-from .dependencies import Caller, RenderEngine, bounded_body
+from ..intake import declared_length
+from .dependencies import Caller, RenderEngine
 from .schemas import AdapterList, AdapterOut
 
 router = APIRouter(prefix="/v1/adapters", tags=["adapters"])
@@ -51,27 +53,35 @@ async def get_adapter(adapter_id: AdapterId, engine: RenderEngine, principal: Ca
                         "stored; a refusal is 422 naming the reason's field.")
 async def put_adapter(adapter_id: AdapterId, request: Request, engine: RenderEngine,
                       principal: Caller("avatars:write")) -> dict:
-    return await engine.put_adapter(adapter_id, lambda: _adapter_parts(request), principal)
+    return await engine.put_adapter(adapter_id, lambda: _adapter_parts(request, engine, principal), principal)
 
 
-async def _adapter_parts(request: Request) -> tuple[bytes, bytes]:
-    """The upload's (model, manifest) parts: the body read once and bounded, then parsed as a form."""
-    body = await bounded_body(request, _ADAPTER_UPLOAD)
-
-    async def replay() -> dict:
-        return {"type": "http.request", "body": body, "more_body": False}
-
+async def _adapter_parts(request: Request, engine, principal) -> tuple[bytes, bytes]:
+    """The upload's (model, manifest) parts: the body through the upload intake (bounded, spooled off the event
+    loop, admitted and counted against the quota), then parsed as a form from that file."""
+    declared = declared_length(request.headers)
+    spooled = await engine.receive_upload(principal, request.stream(), limit=_ADAPTER_UPLOAD, field="body",
+                                          declared=declared)
     try:
-        form = await Request(request.scope, replay).form(max_files=2, max_fields=2, max_part_size=_ADAPTER_UPLOAD)
-    except Exception as e:  # noqa: BLE001 - python-multipart's and starlette's parse errors
-        raise InvalidArgument(f"not a multipart/form-data body with manifest and model parts ({type(e).__name__})",
-                              field="body") from None
-    parts = {}
-    for name in ("manifest", "model"):
-        part = form.get(name)
-        if part is None:
-            raise InvalidArgument(f"the {name} part is missing", field=name)
-        parts[name] = part.encode() if isinstance(part, str) else await part.read()
+        with open(spooled.path, "rb") as f:  # noqa: ASYNC230 - a local file of at most _ADAPTER_UPLOAD bytes
+            async def replay() -> dict:
+                chunk = await asyncio.to_thread(f.read, 1 << 16)
+                return {"type": "http.request", "body": chunk, "more_body": bool(chunk)}
+
+            try:
+                form = await Request(request.scope, replay).form(max_files=2, max_fields=2,
+                                                                 max_part_size=_ADAPTER_UPLOAD)
+            except Exception as e:  # noqa: BLE001 - python-multipart's and starlette's parse errors
+                raise InvalidArgument(f"not a multipart/form-data body with manifest and model parts "
+                                      f"({type(e).__name__})", field="body") from None
+            parts = {}
+            for name in ("manifest", "model"):
+                part = form.get(name)
+                if part is None:
+                    raise InvalidArgument(f"the {name} part is missing", field=name)
+                parts[name] = part.encode() if isinstance(part, str) else await part.read()
+    finally:
+        spooled.path.unlink(missing_ok=True)
     return parts["model"], parts["manifest"]
 
 

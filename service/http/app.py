@@ -28,11 +28,10 @@ from starlette.routing import compile_path
 from swagger_ui_bundle import swagger_ui_path
 
 from blendsplat.v1 import render_pb2 as pb
-from render_core.errors import BlendsplatError
 
 from ..access.http import OPEN_PATHS
 from ..engine import Engine
-from ..errors import BodyRefused, BodyTimeout, ServiceError, http_error, invalid_request
+from ..errors import BlendsplatError, BodyRefused, BodyTimeout, ServiceError, http_error, invalid_request
 from ..jobs.api import ROUTERS as TRAINING_ROUTERS
 from ..jobs.training import Training
 from ..openapi import document_errors

@@ -8,6 +8,8 @@ from fastapi import APIRouter, Request, Response
 from fastapi import Path as PathParam
 
 from ..engine import AVATAR_ID_PATTERN
+from ..intake import declared_length
+from ..openapi import ErrorBody
 from .dependencies import Caller, RenderEngine
 from .schemas import AvatarList, AvatarOut
 
@@ -35,12 +37,14 @@ async def get_avatar(avatar_id: AvatarId, engine: RenderEngine, principal: Calle
 @router.put("/{avatar_id}", status_code=201, response_model=AvatarOut,
             summary="Upload (create or replace) an avatar bundle",
             description="The body is the bundle file (any Content-Type). It is fully validated before it "
-                        "replaces anything; an invalid or oversize upload leaves the store unchanged.")
+                        "replaces anything; an invalid, oversize or over-quota upload leaves the store unchanged.",
+            responses={413: {"model": ErrorBody, "description": "larger than BLENDSPLAT_MAX_UPLOAD_BYTES"},
+                       429: {"model": ErrorBody, "description": "the key's uploads per hour, or the tenant's "
+                                                                "storage quota with this upload"}})
 async def put_avatar(avatar_id: AvatarId, request: Request, engine: RenderEngine,
                      principal: Caller("avatars:write")) -> AvatarOut:
-    declared = request.headers.get("content-length", "")  # a plain number, else the stream's size decides
-    size = int(declared) if declared.isascii() and declared.isdigit() and len(declared) <= 18 else None
-    return AvatarOut.of(await engine.replace(avatar_id, request.stream(), size, principal))
+    declared = declared_length(request.headers)  # else (chunked) the stream's size decides
+    return AvatarOut.of(await engine.replace(avatar_id, request.stream(), declared, principal))
 
 
 @router.delete("/{avatar_id}", status_code=204, response_class=Response,

@@ -11,6 +11,7 @@ from starlette.requests import HTTPConnection
 from ..access.http import Caller
 from ..engine import Engine
 from ..errors import BodyTooLarge
+from ..intake import declared_length
 
 __all__ = ["Caller", "RenderEngine", "bounded_body", "engine_of"]
 
@@ -26,9 +27,9 @@ RenderEngine = Annotated[Engine, Depends(engine_of)]
 async def bounded_body(request: Request, limit: int) -> bytes:
     """The request body, refused before it is read when its declared length passes ``limit`` and as soon as the
     bytes received do (a body without a length is counted as it arrives): never more than ``limit`` in memory."""
-    declared = request.headers.get("content-length")
-    if declared is not None and (not declared.isdigit() or int(declared) > limit):
-        raise BodyTooLarge(f"the request body is {declared[:20]} bytes; the limit is {limit}", field="body")
+    declared = declared_length(request.headers)
+    if declared is not None and declared > limit:
+        raise BodyTooLarge(f"the request body is {declared} bytes; the limit is {limit}", field="body")
     chunks, size = [], 0
     async for chunk in request.stream():
         size += len(chunk)

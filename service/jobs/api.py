@@ -25,7 +25,7 @@ the reason); a refused upload leaves nothing behind.
 
 from __future__ import annotations
 
-import asyncio
+import functools
 import logging
 from typing import Annotated, Any, Literal
 
@@ -36,6 +36,8 @@ from starlette.requests import ClientDisconnect
 
 from ..access.auth import Access
 from ..access.http import Caller
+from ..errors import BodyTooLarge
+from ..intake import declared_length
 from ..openapi import ErrorBody
 from . import events
 from .archive import ArchiveError
@@ -46,7 +48,7 @@ from .multipart import MULTIPART_SLACK, FilePart
 from .schemas import JOB_ID_PATTERN, JobList, JobOut, JobSpec, UploadList, UploadOut
 from .training import Training
 from .uploads import ID_PATTERN as UPLOAD_ID_PATTERN
-from .uploads import InvalidDataset, UploadTooLarge
+from .uploads import InvalidDataset
 
 log = logging.getLogger(__name__)
 
@@ -88,20 +90,20 @@ jobs = APIRouter(prefix="/v1/jobs", tags=["jobs"])
 async def create_upload(request: Request, response: Response, principal: Caller("jobs")) -> UploadOut:
     training = _training(request)
     limit = training.settings.max_dataset_bytes
-    declared = request.headers.get("content-length", "")
     metrics = training.metrics
     try:
-        if declared.isascii() and declared.isdigit() and int(declared) > limit + MULTIPART_SLACK:
-            raise UploadTooLarge(f"the upload is larger than {limit} bytes", field="file")
-        incoming = int(declared) if declared.isascii() and declared.isdigit() else 0
-        await asyncio.to_thread(training.access.admit_upload, principal, incoming)
+        declared = declared_length(request.headers)
+        training.intake.check_declared(declared, limit + MULTIPART_SLACK, "file")  # the form's own bytes allowed
+        await training.intake.admit(principal, declared)
         form = FilePart(request)
         await form.start()
+        # The file part goes through the intake: spooled off the loop, then the tenant's quota on what arrived.
+        spool = functools.partial(training.intake.receive, principal, limit=limit, field="file", admitted=True)
         upload = await training.uploads.receive(form.chunks(), max_bytes=limit, filename=form.filename,
-                                                tenant=principal.tenant)
-    except (UploadTooLarge, ArchiveError, InvalidDataset) as exc:
+                                                tenant=principal.tenant, spool=spool)
+    except (BodyTooLarge, ArchiveError, InvalidDataset) as exc:
         if metrics is not None:
-            kind = ("too_large" if isinstance(exc, UploadTooLarge) else
+            kind = ("too_large" if isinstance(exc, BodyTooLarge) else
                     "archive" if isinstance(exc, ArchiveError) else "dataset")
             metrics.uploads.labels(kind).inc()
         raise

@@ -18,8 +18,8 @@ from pathlib import Path
 
 from render_core.atomic import publish
 
-from ..access.auth import ADMIN_TENANT, PermissionDenied
-from ..store import BundleStore, Owner
+from ..access.auth import ADMIN_TENANT
+from ..store import BundleStore, Writer
 
 log = logging.getLogger(__name__)
 
@@ -53,19 +53,24 @@ def write_image(workdir: Path, name: str, pixels) -> None:
 
 def commit_bundle(bundles: BundleStore, bundle: Path, avatar_id: str, tenant: str | None) -> dict:
     """A copy of the trained bundle into the bundle store under ``avatar_id`` (validated, published atomically,
-    recorded as verified, owned by the job's tenant); the manifest. PermissionDenied when the id is taken by
-    another tenant's avatar meanwhile (checked at submission too)."""
-    owner = Owner(tenant or ADMIN_TENANT)
-    existing = bundles.owner_if_exists(avatar_id)
-    if existing is not None and tenant is not None and existing.tenant != tenant:
-        raise PermissionDenied(f"avatar {avatar_id!r} belongs to another tenant; not replaced", field="avatar_id")
-    fd, staged = bundles.staging()
+    recorded as verified) by the job's tenant, through the bundle store's one write rule
+    (:meth:`~service.store.BundleStore.writable`: PermissionDenied when the id became another tenant's avatar
+    meanwhile; a job an admin key submitted keeps an existing avatar's owner, as the avatar PUT does); the
+    manifest."""
+    staged = bundles.staging_path()
     try:
+        fd = os.open(staged, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_CLOEXEC", 0), 0o600)
         with os.fdopen(fd, "wb") as out, open(bundle, "rb") as src:
             shutil.copyfileobj(src, out, 1 << 20)
     except BaseException:
         staged.unlink(missing_ok=True)
         raise
-    manifest = bundles.commit(staged, avatar_id, owner)
+    manifest, _ = bundles.put(staged, avatar_id, job_writer(tenant))
     log.info("avatar %r committed to the bundle store (%s)", avatar_id, manifest.get("digest"))
     return manifest
+
+
+def job_writer(tenant: str | None) -> Writer:
+    """The writer of a job's avatar: the job's tenant; the admin tenant's jobs (and those of a server without
+    keys) were submitted by admin keys (keys of the admin tenant always hold the admin scope)."""
+    return Writer(tenant or ADMIN_TENANT, tenant in (None, ADMIN_TENANT))

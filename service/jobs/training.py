@@ -41,9 +41,10 @@ from typing import TYPE_CHECKING
 
 from ..access.auth import Access, Principal
 from ..errors import FailedPrecondition, NotFound
+from ..intake import UploadIntake
 from ..settings import Settings
-from ..store import Owner
-from .artefacts import ARTEFACTS
+from ..store import Writer
+from .artefacts import ARTEFACTS, job_writer
 from .models import Job, JobState
 from .schemas import JobLinks, JobOut, JobSpec, Progress, WebhookOut
 from .store import JobStore
@@ -91,14 +92,16 @@ class Training:
     span them. Synchronous (the stores are): async callers run it in a thread."""
 
     def __init__(self, settings: Settings, jobs: JobStore, uploads: UploadStore, *, access: Access,
-                 owner_of_avatar: Callable[[str], Owner | None], metrics: Metrics | None = None):
+                 writable: Callable[[str, Writer], object], metrics: Metrics | None = None):
         """``jobs`` and ``uploads``: from :func:`open_stores` (closed by :meth:`close`). ``access``: the process's
-        access control (per-key limits, quotas, audit). ``owner_of_avatar``: an existing avatar's owner, None when
-        there is none (the bundle store's ``owner_if_exists``). ``metrics``: the process's; the job queue's depth
+        access control (per-key limits, quotas, audit). ``writable``: the bundle store's one avatar-write rule
+        (:meth:`~service.store.BundleStore.writable`: PermissionDenied when the writer may not write the id).
+        ``metrics``: the process's; the job queue's depth
         is read from ``jobs`` at each scrape."""
         self.settings, self.jobs, self.uploads, self.metrics = settings, jobs, uploads, metrics
         self.access = access
-        self.owner_of_avatar = owner_of_avatar
+        self.intake = UploadIntake(access)
+        self.writable = writable
         self.work_root = Path(settings.work_dir)
         if metrics is not None:
             metrics.watch_jobs(jobs)
@@ -125,9 +128,7 @@ class Training:
         The job is the caller's tenant's: it trains on that tenant's upload, into an avatar id that is free or
         the tenant's own (PermissionDenied otherwise; the worker checks the avatar again when it commits)."""
         self.upload_for(request.upload_id, principal)  # NotFound naming upload_id; PermissionDenied
-        owner = self.owner_of_avatar(request.avatar_id)
-        if owner is not None:
-            principal.check_write(f"avatar {request.avatar_id!r}", owner.tenant)
+        self.writable(request.avatar_id, job_writer(principal.tenant))  # the rule the worker's commit applies
         self.access.count_job(principal)
         before = datetime.now(UTC)
         job = self.jobs.submit(request.stored(), tenant=principal.tenant, idempotency_key=idempotency_key,

@@ -19,7 +19,6 @@ deletion in progress); :meth:`UploadStore.clean_stale` removes those a killed pr
 from __future__ import annotations
 
 import asyncio
-import hashlib
 import json
 import os
 import re
@@ -27,33 +26,29 @@ import secrets
 import shutil
 import threading
 import time
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import asdict, dataclass
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
 from render_core.data.portable import MANIFEST, validate_dataset
 
+from .. import intake
 from ..errors import InvalidArgument, NotFound
 from .archive import ArchiveLimits, detect_kind, extract_archive
 
-__all__ = ["ID_PATTERN", "InvalidDataset", "Upload", "UploadStore", "UploadTooLarge", "check_upload_id"]
+__all__ = ["ID_PATTERN", "InvalidDataset", "Upload", "UploadStore", "check_upload_id"]
+
+Spool = Callable[[AsyncIterator[bytes], Path], Awaitable[intake.Spooled]]  # body -> the file it is written to
 
 ID_PATTERN = re.compile(r"^upl_[A-Za-z0-9_-]{16,64}$")
 RECORD = "upload.json"
 DATASET = "dataset"
 _TEMP_PREFIXES = (".incoming-", ".staging-", ".deleting-")
-_WRITE_BATCH = 1 << 20  # received bytes are written to disk in batches of this size, off the event loop
 _MAX_PROBLEMS = 50  # problems kept in an InvalidDataset
 _MAX_PROBLEM_CHARS = 300  # each
 _MAX_MESSAGE_CHARS = 4000
 _MAX_FILENAME_CHARS = 255
-
-
-class UploadTooLarge(InvalidArgument):
-    """The upload passed ``max_bytes`` (``field`` ``"file"``): INVALID_ARGUMENT on the wire, HTTP 413."""
-
-    http = 413
 
 
 class InvalidDataset(InvalidArgument):
@@ -130,10 +125,13 @@ class UploadStore:
 
     # ------------------------------------------------------------------------------------------------- receiving
     async def receive(self, chunks: AsyncIterator[bytes], *, max_bytes: int, filename: str | None = None,
-                      tenant: str | None = None) -> Upload:
+                      tenant: str | None = None, spool: Spool | None = None) -> Upload:
         """Receive one archive from ``chunks``, check, extract, validate and publish it; return its record.
 
-        Raises :class:`UploadTooLarge` once more than ``max_bytes`` arrived (the rest is not read),
+        ``spool`` writes the body to the path it is given (default: :func:`service.intake.spool` bounded by
+        ``max_bytes``; the HTTP route passes its :class:`~service.intake.UploadIntake`'s, which also checks the
+        tenant's quota on the bytes that arrived, before anything is extracted).
+        Raises :class:`~service.errors.BodyTooLarge` once more than ``max_bytes`` arrived (the rest is not read),
         :class:`~service.jobs.archive.ArchiveError` for an archive refused, :class:`InvalidDataset` for a dataset that
         is not valid. Whatever happens (also when the caller is cancelled, e.g. the client went away), a refused
         upload leaves nothing in the store."""
@@ -143,7 +141,11 @@ class UploadStore:
         cancelled = threading.Event()
         state = {"published": None}
         try:
-            size, sha256 = await self._spool(chunks, incoming, max_bytes)
+            if spool is None:
+                size, sha256 = await intake.spool(chunks, incoming, max_bytes, "file")
+            else:
+                spooled = await spool(chunks, incoming)
+                size, sha256 = spooled.size, spooled.sha256
             return await asyncio.to_thread(self._ingest, incoming, token, size, sha256, filename, cancelled, state,
                                            tenant)
         except asyncio.CancelledError:
@@ -155,31 +157,6 @@ class UploadStore:
             raise
         finally:
             incoming.unlink(missing_ok=True)
-
-    async def _spool(self, chunks: AsyncIterator[bytes], path: Path, max_bytes: int) -> tuple[int, str]:
-        """Write the body to ``path`` (created exclusively, mode 0600) in batches off the event loop; its size and
-        SHA-256."""
-        digest = hashlib.sha256()
-        size = 0
-        pending: list[bytes] = []
-        pending_bytes = 0
-        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_CLOEXEC", 0), 0o600)
-        with os.fdopen(fd, "wb") as out:
-            async for chunk in chunks:
-                if not chunk:
-                    continue
-                size += len(chunk)
-                if size > max_bytes:
-                    raise UploadTooLarge(f"the upload is larger than {max_bytes} bytes", field="file")
-                digest.update(chunk)
-                pending.append(bytes(chunk))
-                pending_bytes += len(chunk)
-                if pending_bytes >= _WRITE_BATCH:
-                    await asyncio.to_thread(out.write, b"".join(pending))
-                    pending, pending_bytes = [], 0
-            if pending:
-                await asyncio.to_thread(out.write, b"".join(pending))
-        return size, digest.hexdigest()
 
     def _ingest(self, archive: Path, token: str, size: int, sha256: str, filename: str | None,
                 cancelled: threading.Event, state: dict, tenant: str | None = None) -> Upload:
