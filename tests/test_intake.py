@@ -72,17 +72,22 @@ def test_the_limit_is_enforced_on_the_declared_and_the_received_size(tmp_path):
     assert e.value.field == "bundle" and not (tmp_path / "b").exists()
 
 
-def test_the_body_is_never_written_on_the_event_loop(tmp_path, monkeypatch):
-    writers = []
+@pytest.fixture
+def writers(monkeypatch) -> list[int]:
+    """The threads the intake's disk writes ran on (batches of 1000 bytes)."""
+    seen: list[int] = []
     real = intake._write
 
     def spy(out, data):
-        writers.append(threading.get_ident())
+        seen.append(threading.get_ident())
         real(out, data)
 
     monkeypatch.setattr(intake, "_write", spy)
     monkeypatch.setattr(intake, "WRITE_BATCH", 1000)
+    return seen
 
+
+def test_the_body_is_never_written_on_the_event_loop(tmp_path, writers):
     async def main():
         loop_thread = threading.get_ident()
         await UploadIntake(Quota(10**9)).receive(None, _body(*[b"z" * 600] * 5), tmp_path / "c", limit=10**6,
@@ -112,7 +117,7 @@ def test_a_client_that_goes_away_leaves_nothing(tmp_path):
     assert not (tmp_path / "d").exists()
 
 
-def test_the_avatar_put_spools_its_body_off_the_event_loop(tmp_path, monkeypatch):
+def test_the_avatar_put_spools_its_body_off_the_event_loop(tmp_path, writers):
     """Engine.replace (the avatar PUT) goes through the intake: no byte of the bundle is written on the loop."""
     from render_core.bundle import write_bundle
     from render_core.synthetic import synth_avatar
@@ -121,15 +126,6 @@ def test_the_avatar_put_spools_its_body_off_the_event_loop(tmp_path, monkeypatch
 
     write_bundle(synth_avatar(gaussians=200, blendshapes=3, seed=2), tmp_path / "a.bundle", precision="fp16")
     data = (tmp_path / "a.bundle").read_bytes()
-    writers = []
-    real = intake._write
-
-    def spy(out, chunk):
-        writers.append(threading.get_ident())
-        real(out, chunk)
-
-    monkeypatch.setattr(intake, "_write", spy)
-    monkeypatch.setattr(intake, "WRITE_BATCH", 4096)
     engine = Engine(Settings(data_dir=tmp_path / "data", warmup_size=32))
 
     async def main():
