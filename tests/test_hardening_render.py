@@ -484,7 +484,9 @@ def test_a_slow_session_gets_its_share_not_the_render_thread(live_server, stub):
         replies = s.close()
         assert replies[-1].status.code == pb.OK
         counts[name] = replies[-1].status.frames_sent
-    assert counts["heavy"] >= 1 and counts["light"] >= 4 * counts["heavy"], counts
+    # First come, first served gives about one light frame per heavy one; the fair share gives 3.5 to 4.5 on the
+    # 2-core machine (measured), so 3x tells them apart without riding on that machine's noise.
+    assert counts["heavy"] >= 1 and counts["light"] >= 3 * counts["heavy"], counts
 
 
 # ---------------------------------------------------------------------------------- finding 8: bounded text
