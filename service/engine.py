@@ -332,8 +332,8 @@ class Engine:
         if avatar_id is not None:
             entry = await self.cache.load(avatar_id)
         else:
+            from render_core.facemodel.synthetic import synth_avatar
             from render_core.renderer import AvatarRenderer
-            from render_core.synthetic import synth_avatar
 
             avatar = synth_avatar(gaussians=256, blendshapes=4)
             entry = Loaded("warm-up", avatar, AvatarRenderer(avatar, self.settings.backend), "", 0, 0)

@@ -33,7 +33,7 @@ import uvicorn
 from render_core.bundle import write_bundle
 from render_core.errors import BlendsplatError, FaceModelError
 from render_core.facemodel.open_head import open_head
-from render_core.synthetic import synth_avatar
+from render_core.facemodel.synthetic import synth_avatar
 from render_core.train.initialize import demo_albedo, init_avatar
 
 from .access.auth import ADMIN_TENANT, Access

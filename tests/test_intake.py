@@ -120,7 +120,7 @@ def test_a_client_that_goes_away_leaves_nothing(tmp_path):
 def test_the_avatar_put_spools_its_body_off_the_event_loop(tmp_path, writers):
     """Engine.replace (the avatar PUT) goes through the intake: no byte of the bundle is written on the loop."""
     from render_core.bundle import write_bundle
-    from render_core.synthetic import synth_avatar
+    from render_core.facemodel.synthetic import synth_avatar
     from service.engine import Engine
     from service.settings import Settings
 

@@ -81,8 +81,8 @@ def verified_fastest_path() -> str:
     if len(paths) == 1:
         return paths[0]
     from ..camera import orbit
+    from ..facemodel.synthetic import synth_avatar
     from ..rotation import axis_angle_to_matrix
-    from ..synthetic import synth_avatar
 
     avatar = synth_avatar(400, 4, seed=11)
     packed = NativeAvatar(avatar)

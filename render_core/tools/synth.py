@@ -4,6 +4,6 @@ code never imports the tools."""
 
 from __future__ import annotations
 
-from ..synthetic import synth_avatar
+from ..facemodel.synthetic import synth_avatar
 
 __all__ = ["synth_avatar"]

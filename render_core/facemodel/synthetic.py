@@ -17,10 +17,10 @@ import math
 import torch
 from torch import Tensor
 
-from .avatar import FLAME_JOINTS, FLAME_MOUTH_JOINTS, FLAME_PARENTS, Avatar, Gaussians, sh_coeff_count
-from .camera import front_camera
-from .errors import OptionError
-from .rotation import matrix_to_quat
+from ..avatar import FLAME_JOINTS, FLAME_MOUTH_JOINTS, FLAME_PARENTS, Avatar, Gaussians, sh_coeff_count
+from ..camera import front_camera
+from ..errors import OptionError
+from ..rotation import matrix_to_quat
 
 SH_C0 = 0.28209479177387814
 HEAD_RADII = (0.075, 0.10, 0.09)
