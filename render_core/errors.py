@@ -47,3 +47,9 @@ class CodecError(BlendsplatError):
 class OptionError(BlendsplatError, ValueError):
     """An option of a command or library call is invalid: a backend, precision, device, output format or a count
     out of range. ``field`` names the option. Also a :class:`ValueError`, which these options raised before."""
+
+
+class TrackingError(BlendsplatError):
+    """Tracking a video failed on its input: not a video (``video``), a stream corrupt halfway (``video``), over a
+    limit (``duration``, ``resolution``, ``frames``), a bad option (``fps``, ``crop``, ``size``, ``detector``), no
+    face found (``face``), or the shipped tracking models missing or altered (``model``). ``field`` names which."""

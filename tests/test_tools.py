@@ -24,6 +24,7 @@ from render_core.train import get_preset
 from render_core.train.trainer import raster_step
 
 CLIS = {Path(render_core.__file__).parent / "tools" / "cli.py",
+        Path(render_core.__file__).parent / "tracking" / "fetch_models.py",  # the models' maintainer command
         *(Path(service.__file__).parent / name
           for name in ("cli.py", "jobs/cli.py", "jobs/display.py", "access/keys_cli.py"))}
 
