@@ -7,7 +7,8 @@
 #   docker build --target cuda -t REGISTRY/blendsplat:TAG-cuda .
 #
 # The final stages hold Python, the virtual environment and the runtime libraries: no compiler, no pip cache, no
-# build context. A non-root user (uid 10001) owns /data (BLENDSPLAT_DATA_DIR). The entry point is the exec form,
+# build context. A non-root user (uid 10001) owns /data (BLENDSPLAT_DATA_DIR). The servers listen on every interface
+# (BLENDSPLAT_HOST=0.0.0.0: outside a container the default is 127.0.0.1). The entry point is the exec form,
 # so SIGTERM reaches the service itself (it drains; a worker checkpoints). Build with `--format docker` under
 # podman/buildah: the OCI format has no HEALTHCHECK. deploy/smoke builds and runs the cpu target on a local base.
 
@@ -56,7 +57,8 @@ ENV PATH=/opt/blendsplat/venv/bin:$PATH \
     PYTHONUNBUFFERED=1 \
     PYTHONDONTWRITEBYTECODE=1 \
     MPLCONFIGDIR=/tmp/matplotlib \
-    BLENDSPLAT_DATA_DIR=/data
+    BLENDSPLAT_DATA_DIR=/data \
+    BLENDSPLAT_HOST=0.0.0.0
 # hadolint ignore=DL3008
 RUN apt-get update \
     && apt-get install -y --no-install-recommends python3 libgomp1 \
@@ -117,6 +119,7 @@ ENV PATH=/opt/blendsplat/venv/bin:$PATH \
     PYTHONDONTWRITEBYTECODE=1 \
     MPLCONFIGDIR=/tmp/matplotlib \
     BLENDSPLAT_DATA_DIR=/data \
+    BLENDSPLAT_HOST=0.0.0.0 \
     BLENDSPLAT_BACKEND=cuda \
     NVIDIA_VISIBLE_DEVICES=all \
     NVIDIA_DRIVER_CAPABILITIES=compute,utility

@@ -3,11 +3,18 @@
 Each stream sends fresh random coefficients and joint rotations every 1/fps seconds, acknowledges every frame
 it receives, and measures pose-to-frame latency (from building the pose to receiving its encoded frame). The
 first ``warmup`` seconds are not counted.
+
+The report is strict JSON: a figure with no samples (no frames arrived) is null, never NaN. The server's resident
+memory (``server_rss_mb``) is read from its Prometheus endpoint (``process_resident_memory_bytes``): the
+``metrics_url`` given, else ``http://<target host>:<the default HTTP port>/metrics``; when that cannot be read the
+figures are null and ``server_rss_note`` says why. A server that cannot be reached raises
+:class:`ServerUnreachable` (an OSError) before any stream starts.
 """
 
 from __future__ import annotations
 
 import asyncio
+import logging
 import time
 from dataclasses import dataclass, field
 
@@ -20,6 +27,12 @@ from blendsplat.v1 import render_pb2_grpc as pb_grpc
 from .params import CODEC_NAMES
 
 CODECS = {name: value for value, name in CODEC_NAMES.items() if value}
+log = logging.getLogger(__name__)
+CONNECT_SECONDS = 5.0  # how long the channel may take to connect before the server counts as unreachable
+
+
+class ServerUnreachable(ConnectionError):
+    """No gRPC server answers at the target."""
 
 
 @dataclass
@@ -112,35 +125,70 @@ async def _run_stream(stub: pb_grpc.RenderServiceStub, avatar: str, size: int, c
     return result
 
 
-def _pct(values: list[float], q: float) -> float:
-    return round(float(np.percentile(values, q)), 2) if values else float("nan")
+def _pct(values: list[float], q: float) -> float | None:
+    """The ``q``-th percentile, or None (JSON null) without samples."""
+    return round(float(np.percentile(values, q)), 2) if values else None
 
 
-def _server_rss(metrics_url: str | None) -> float | None:
-    """The server's resident memory (MB) from its Prometheus endpoint, if given."""
-    if not metrics_url:
-        return None
+def default_metrics_url(target: str) -> str:
+    """The /metrics URL of the server at the gRPC ``target`` (HOST:PORT) when its HTTP port is the default one."""
+    from .settings import Settings
+
+    host = target.rsplit(":", 1)[0] if ":" in target else target
+    return f"http://{host or '127.0.0.1'}:{Settings.model_fields['http_port'].default}/metrics"
+
+
+def _server_rss(metrics_url: str) -> tuple[float | None, str | None]:
+    """The server's resident memory (MB) from its Prometheus endpoint: (MB, None), or (None, why not)."""
     import urllib.request
 
-    with urllib.request.urlopen(metrics_url, timeout=10) as r:
-        for line in r.read().decode().splitlines():
-            if line.startswith("process_resident_memory_bytes "):
-                return round(float(line.split()[1]) / 1e6, 1)
-    return None
+    try:
+        with urllib.request.urlopen(metrics_url, timeout=10) as r:
+            for line in r.read().decode(errors="replace").splitlines():
+                if line.startswith("process_resident_memory_bytes "):
+                    return round(float(line.split()[1]) / 1e6, 1), None
+    except (OSError, ValueError) as e:  # URLError, HTTPError, timeouts are OSErrors
+        return None, f"{metrics_url} could not be read ({type(e).__name__}: {str(e)[:200]}); --metrics-url names it"
+    return None, f"{metrics_url} has no process_resident_memory_bytes"
+
+
+async def _connect(channel: grpc.aio.Channel, target: str, seconds: float) -> None:
+    """Wait until the channel connects: :class:`ServerUnreachable` as soon as a connection attempt fails (refused,
+    no route) or after ``seconds``."""
+    hint = "is it running (`blendsplat serve` or `blendsplat up`)? --target HOST:PORT names another"
+    deadline = time.monotonic() + seconds
+    state = channel.get_state(try_to_connect=True)
+    while state != grpc.ChannelConnectivity.READY:
+        if state in (grpc.ChannelConnectivity.TRANSIENT_FAILURE, grpc.ChannelConnectivity.SHUTDOWN):
+            raise ServerUnreachable(f"cannot connect to a gRPC server at {target}; {hint}")
+        try:
+            await asyncio.wait_for(channel.wait_for_state_change(state), max(0.0, deadline - time.monotonic()))
+        except TimeoutError:
+            raise ServerUnreachable(f"no gRPC server answers at {target} (not connected within {seconds:g} s); "
+                                    f"{hint}") from None
+        state = channel.get_state(try_to_connect=True)
 
 
 async def bench_stream(target: str, avatar: str, streams: int = 1, seconds: float = 10.0, fps: float = 30.0,
                        size: int = 512, codec: str = "jpeg", warmup: float = 1.0, seed: int = 0,
-                       ack: bool = True, metrics_url: str | None = None, api_key: str | None = None) -> dict:
-    """``ack=False``: readers that never acknowledge (flow control must keep the server's memory flat; with
-    ``metrics_url`` the server's resident memory before and after is reported)."""
-    rss_before = _server_rss(metrics_url)
+                       ack: bool = True, metrics_url: str | None = None, api_key: str | None = None,
+                       connect_seconds: float = CONNECT_SECONDS) -> dict:
+    """``ack=False``: readers that never acknowledge (flow control must keep the server's memory flat: the server's
+    resident memory before and at the end is reported, from ``metrics_url``, by default the target host's
+    /metrics on the default HTTP port). Raises :class:`ServerUnreachable` when no server answers at ``target``
+    within ``connect_seconds``."""
     async with grpc.aio.insecure_channel(target, options=[("grpc.max_receive_message_length", 64 << 20)]) as ch:
+        await _connect(ch, target, connect_seconds)
+        metrics_url = metrics_url or default_metrics_url(target)
+        rss_before, rss_note = await asyncio.to_thread(_server_rss, metrics_url)
+        log.info("streaming %d stream(s) of %r from %s for %g s after a %g s warm-up", streams, avatar, target,
+                 seconds, warmup)
         stub = pb_grpc.RenderServiceStub(ch)
         results = await asyncio.gather(*(
             _run_stream(stub, avatar, size, codec, fps, seconds, warmup, seed + i, ack, api_key)
             for i in range(streams)))
-        rss_during = _server_rss(metrics_url)
+        rss_during, note = await asyncio.to_thread(_server_rss, metrics_url)
+        rss_note = rss_note or note
     latencies = [x for r in results for x in r.latencies]
     server = [x for r in results for x in r.server_ms]
     sizes = [x for r in results for x in r.bytes]
@@ -151,12 +199,13 @@ async def bench_stream(target: str, avatar: str, streams: int = 1, seconds: floa
         "fps_per_stream": round(float(np.mean(per_stream)), 2), "fps_per_stream_min": round(min(per_stream), 2),
         "fps_aggregate": round(sum(per_stream), 2), "frames": len(latencies),
         "latency_ms": {"p50": _pct(latencies, 50), "p95": _pct(latencies, 95), "p99": _pct(latencies, 99),
-                       "max": round(max(latencies), 2) if latencies else float("nan")},
+                       "max": round(max(latencies), 2) if latencies else None},
         "server_ms": {"p50": _pct(server, 50), "p99": _pct(server, 99),
                       **{f"{stage}_p50": _pct([s[i] for r in results for s in r.stages], 50)
                          for i, stage in enumerate(("queue", "blend", "lbs", "raster", "encode"))}},
         "bytes_per_frame": round(float(np.mean(sizes)), 1) if sizes else 0.0,
         "dropped": sum(r.dropped for r in results), "errors": sum(r.errors for r in results),
         "error_messages": sorted({m for r in results for m in r.messages})[:10],
-        "acks": ack, "server_rss_mb": {"before": rss_before, "end": rss_during},
+        "acks": ack, "server_rss_mb": {"before": rss_before, "end": rss_during}, "metrics_url": metrics_url,
+        **({"server_rss_note": rss_note} if rss_note else {}),
     }

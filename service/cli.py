@@ -81,24 +81,30 @@ def _add_worker(commands) -> None:
 
 
 def cmd_bench_stream(args: argparse.Namespace) -> int:
+    """The report as strict JSON on stdout; exit 1, with why on stderr, when no frame arrived (a server that cannot be
+    reached is an error before any stream: ServerUnreachable, printed by the command's main)."""
     from .bench_stream import bench_stream
 
     result = asyncio.run(bench_stream(args.target, args.avatar, streams=args.streams, seconds=args.seconds,
                                       fps=args.fps, size=args.size, codec=args.codec, warmup=args.warmup,
                                       seed=args.seed, ack=not args.no_ack, metrics_url=args.metrics_url,
                                       api_key=args.api_key))
-    if args.json:
-        print(json.dumps(result))
-    else:
-        print(json.dumps(result, indent=2))
-    return 0 if result["frames"] else 1
+    core_cli.emit(result, indent=None if args.json else 2)
+    if result.get("server_rss_note"):
+        print(f"blendsplat: note: server_rss_mb is null: {result['server_rss_note']}", file=sys.stderr)
+    if not result["frames"]:
+        reasons = "; ".join(result["error_messages"]) or "the server sent none"
+        print(f"blendsplat: error: bench stream: no frames from {args.target} (avatar {args.avatar!r}): {reasons}",
+              file=sys.stderr)
+        return 1
+    return 0
 
 
 def cmd_bench_load(args: argparse.Namespace) -> int:
     from .bench_load import bench_load
 
     result = bench_load(args.bundle, size=args.size, backend=args.backend, threads=args.threads, vs_v1=args.vs_v1)
-    print(json.dumps(result) if args.json else json.dumps(result, indent=2))
+    core_cli.emit(result, indent=None if args.json else 2)
     return 0
 
 
@@ -125,7 +131,7 @@ def cmd_migrate(args: argparse.Namespace) -> int:
     except SQLAlchemyError as e:
         print(f"blendsplat: error: migrating {shown}: {type(e).__name__}: {str(e)[:500]}", file=sys.stderr)
         return 1
-    print(json.dumps({"database": shown, "revision": head()}))
+    core_cli.emit({"database": shown, "revision": head()}, indent=None)
     return 0
 
 
@@ -178,12 +184,13 @@ def cmd_settings(args: argparse.Namespace) -> int:
         head_, rest = text.split(SETTINGS_BEGIN, 1)
         args.update.write_text(head_ + settings_markdown().rstrip("\n") + rest.split(SETTINGS_END, 1)[1])
         return 0
-    print(settings_markdown() if args.markdown else json.dumps(settings_reference(), indent=2), end="")
+    print(settings_markdown() if args.markdown else core_cli.dumps(settings_reference()), end="")
     return 0
 
 
 def build_parser() -> argparse.ArgumentParser:
     from .bench_stream import CODECS
+    from .settings import Settings
 
     p = core_cli.build_parser()
     keys_cli.add_parser(p.commands)
@@ -193,7 +200,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--grpc-port", type=int, default=None, help="default 50051 (0: any free port)")
     s.add_argument("--http-port", type=int, default=None, help="default 8080 (0: any free port)")
     s.add_argument("--data-dir", type=Path, default=None, help="bundle store root (default ./data)")
-    s.add_argument("--host", default=None, help="interface to listen on (default 0.0.0.0)")
+    s.add_argument("--host", default=None, help="interface to listen on (default: BLENDSPLAT_HOST, else 127.0.0.1, "
+                                                "this machine only; 0.0.0.0: every interface)")
     s.set_defaults(fn=cmd_serve)
 
     u = p.commands.add_parser("up", help="the whole product on one machine: `serve` plus one training worker",
@@ -206,7 +214,8 @@ def build_parser() -> argparse.ArgumentParser:
     u.add_argument("--http-port", type=int, default=None, help="default 8080 (0: any free port)")
     u.add_argument("--data-dir", type=Path, default=None, help="bundles, uploads, work folders, jobs.db "
                                                                "(default ./data)")
-    u.add_argument("--host", default=None, help="interface to listen on (default 0.0.0.0)")
+    u.add_argument("--host", default=None, help="interface to listen on (default: BLENDSPLAT_HOST, else 127.0.0.1, "
+                                                "this machine only; 0.0.0.0: every interface)")
     u.add_argument("--device", choices=("cpu", "cuda"), default="cpu", help="the worker's training device")
     u.add_argument("--worker-metrics-port", type=int, default=0,
                    help="serve the worker's Prometheus metrics on this port (default: none)")
@@ -235,7 +244,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     b = p.bench_commands.add_parser("stream", help="drive a running service over gRPC: fps and pose-to-frame "
                                                    "latency per stream")
-    b.add_argument("--target", required=True, help="HOST:PORT of the gRPC server")
+    b.add_argument("--target", default=f"127.0.0.1:{Settings.model_fields['grpc_port'].default}",
+                   help="HOST:PORT of the gRPC server (default: the server's default, %(default)s)")
     b.add_argument("--avatar", required=True, help="avatar id")
     b.add_argument("--streams", type=int, default=1)
     b.add_argument("--seconds", type=float, default=10.0, help="measured time (after the warm-up)")
@@ -246,7 +256,9 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--seed", type=int, default=0)
     b.add_argument("--no-ack", action="store_true", help="readers that never acknowledge a frame (flow control)")
     b.add_argument("--metrics-url", default=None,
-                   help="the server's /metrics URL: report its resident memory before and at the end")
+                   help="the server's /metrics URL, read for its resident memory before and at the end "
+                        "(server_rss_mb; default: http://<target host>:"
+                        f"{Settings.model_fields['http_port'].default}/metrics, the default HTTP port)")
     b.add_argument("--json", action="store_true", help="one JSON line")
     b.add_argument("--api-key", default=os.environ.get("BLENDSPLAT_API_KEY"),
                    help="API key with the render scope (default: the environment variable BLENDSPLAT_API_KEY)")

@@ -210,9 +210,30 @@ def warn_if_sqlite_on_network_filesystem(url: str, mounts: str | os.PathLike = "
 
 # ---- migrations (Alembic, configured here: no alembic.ini) ----
 
+class _AlembicNoise(logging.Filter):
+    """Alembic's INFO lines other than the migrations it runs ("Running upgrade 0001 -> 0002, ..."): plugin set-up,
+    "Context impl SQLiteImpl", "Will assume non-transactional DDL". Only records of the loggers it is added to."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return record.levelno > logging.INFO or str(record.msg).startswith("Running ")
+
+
+_NOISE = _AlembicNoise()
+
+
+def _quiet_alembic() -> None:
+    """Keep Alembic's set-up chatter out of the host process's log (every ``blendsplat`` command that opens the
+    database checks its revision): the lines of migrations it runs stay."""
+    for name in ("alembic.runtime.plugins", "alembic.runtime.migration"):
+        logger = logging.getLogger(name)
+        if _NOISE not in logger.filters:
+            logger.addFilter(_NOISE)
+
+
 def alembic_config(url: str | None = None):
     """An Alembic configuration for the migrations in ``service/migrations`` (``url`` only for commands that
     connect)."""
+    _quiet_alembic()
     from alembic.config import Config
 
     config = Config()
@@ -231,6 +252,7 @@ def head() -> str:
 
 def current(engine: Engine) -> str | None:
     """The revision a database is at (None: never migrated)."""
+    _quiet_alembic()
     from alembic.runtime.migration import MigrationContext
 
     with engine.connect() as connection:
@@ -242,18 +264,27 @@ def migrate(target: str | Engine, revision: str = "head") -> None:
 
     Idempotent, and safe when several processes start at once: on SQLite the migration runs in one
     ``BEGIN IMMEDIATE`` transaction, on PostgreSQL under a transaction-scoped advisory lock, so a second caller
-    waits and then finds the database at head."""
+    waits and then finds the database at head. A database already at head is left alone, silently; a migration
+    logs its steps (Alembic's "Running upgrade ..." lines) and one line with the revisions it went between."""
+    _quiet_alembic()
     from alembic import command
+    from alembic.runtime.migration import MigrationContext
 
     engine = make_engine(target) if isinstance(target, str) else target
     try:
         config = alembic_config()
+        newest = head() if revision == "head" else revision
         runner = engine.execution_options(sqlite_begin="IMMEDIATE")
         with runner.begin() as connection:
             if connection.dialect.name == "postgresql":
                 connection.exec_driver_sql(f"SELECT pg_advisory_xact_lock({_PG_LOCK})")
+            was = MigrationContext.configure(connection).get_current_revision()
+            if was == newest:
+                return  # nothing to migrate (the commonest case: every command opens the database)
             config.attributes["connection"] = connection
             command.upgrade(config, revision)
+        log.info("migrated the database %s from revision %s to %s", engine.url.render_as_string(hide_password=True),
+                 was or "(empty)", newest)
     finally:
         if isinstance(target, str):
             engine.dispose()

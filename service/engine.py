@@ -575,7 +575,7 @@ class Engine:
                 id=avatar_id, loaded=True, gaussians=a.num_gaussians + a.num_mouth, mouth_gaussians=a.num_mouth,
                 expression_names=a.expression_names, joint_names=a.joint_names, sh_degree=a.sh_degree,
                 precision=a.precision, face_model=a.face_model, file_bytes=entry.file_bytes,
-                memory_bytes=entry.memory_bytes, digest=entry.digest)
+                memory_bytes=entry.memory_bytes, digest=entry.digest, **training_figures(a.provenance))
         m = self.store.manifest(avatar_id)
         counts = m.get("counts", {})
         return pb.AvatarInfo(
@@ -583,7 +583,8 @@ class Engine:
             mouth_gaussians=counts.get("mouth", 0), expression_names=m.get("expression_names", []),
             joint_names=m.get("joint_names", []), sh_degree=m.get("sh_degree", 0),
             precision=m.get("precision", ""), face_model=str(m.get("face_model", "")),
-            file_bytes=path.stat().st_size, digest=m.get("digest", ""))
+            file_bytes=path.stat().st_size, digest=m.get("digest", ""),
+            **training_figures(m.get("provenance")))
 
     def list_avatars(self, principal: Principal = TRUSTED) -> list[pb.AvatarInfo]:
         """The avatars ``principal`` may read (its tenant's and the public ones; admin keys: all)."""
@@ -641,6 +642,20 @@ class Engine:
         info = self.adapters.delete(adapter_id)
         self.access.audit(principal, "adapter.delete", adapter_id)
         return info
+
+
+def training_figures(provenance: Any) -> dict[str, Any]:
+    """AvatarInfo's ``trained`` and ``psnr_head`` from a bundle's provenance: trained when it records a training
+    (``trained``, as `blendsplat train` and the job worker write it), psnr_head its held-out head PSNR (left unset
+    when there is none)."""
+    trained = provenance.get("trained") if isinstance(provenance, dict) else None
+    if not isinstance(trained, dict):
+        return {"trained": False}
+    held_out = trained.get("held_out")
+    value = held_out.get("psnr_head") if isinstance(held_out, dict) else None
+    if isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value):
+        return {"trained": True, "psnr_head": float(value)}
+    return {"trained": True}
 
 
 def _attributed(exc: BaseException) -> BaseException:

@@ -23,6 +23,7 @@ import contextlib
 import gc
 import logging
 import os
+import shutil
 import signal
 import sys
 import time
@@ -30,9 +31,10 @@ from pathlib import Path
 
 import uvicorn
 
+from render_core.atomic import atomic_path
 from render_core.bundle import write_bundle
 from render_core.errors import BlendsplatError, FaceModelError
-from render_core.facemodel.open_head import open_head
+from render_core.facemodel.open_head import DEMO_AVATAR, open_head
 from render_core.facemodel.synthetic import synth_avatar
 from render_core.train.initialize import demo_albedo, init_avatar
 
@@ -55,9 +57,18 @@ DEMO_OWNER = Owner(ADMIN_TENANT, public=True)  # every key may read and stream t
 
 
 def make_demo_avatar(settings: Settings, engine: Engine) -> str:
-    """The demo avatar ``demo``: ``demo_gaussians`` Gaussians (15/16 face, 1/16 mouth) in fp16, initialised on the
-    open head model (K = 52 ARKit expressions, shipped with the package), or, when the settings ask for it, a
-    synthetic avatar of the same size whose blendshapes have compact support."""
+    """The demo avatar ``demo``, as ``demo_avatar`` asks; what it is, for the log.
+
+    ``trained`` (the default): the package's trained demo avatar (render_core/facemodel/demo-avatar.bsplat, built
+    by ``blendsplat bundle build-demo``), validated and copied into the store in well under a second; when it is
+    missing or broken, the open head instead. ``open-head``: ``demo_gaussians`` Gaussians (15/16 face, 1/16
+    mouth) in fp16 initialised on the open head model (K = 52 ARKit expressions, shipped with the package),
+    untrained. ``synthetic``: a synthetic avatar of that size whose blendshapes have compact support."""
+    if settings.demo_avatar == "trained":
+        try:
+            return _copy_trained_demo(engine)
+        except (OSError, BlendsplatError) as e:
+            log.warning("demo avatar: the shipped trained one cannot be used (%s); the open head instead", e)
     n = settings.demo_gaussians
     try:
         if settings.demo_avatar == "synthetic":
@@ -72,7 +83,39 @@ def make_demo_avatar(settings: Settings, engine: Engine) -> str:
     write_bundle(avatar, engine.store.path(DEMO_ID), precision="fp16")
     engine.store.adopt(DEMO_ID)  # verified once, here: later loads trust the store's record
     engine.store.set_owner(DEMO_ID, DEMO_OWNER)
-    return avatar.face_model
+    return f"{n} Gaussians, {avatar.face_model}, untrained"
+
+
+def _copy_trained_demo(engine: Engine) -> str:
+    """Copy the shipped trained demo avatar into the store as ``demo``: fully verified once (the store's record
+    then spares later loads the digest), public, owned by admin; what it is, for the log."""
+    path = engine.store.path(DEMO_ID)
+    with atomic_path(path) as tmp:
+        shutil.copyfile(DEMO_AVATAR, tmp)
+    try:
+        manifest = engine.store.adopt(DEMO_ID)  # fully verified (before the servers start), recorded as verified
+    except BaseException:
+        path.unlink(missing_ok=True)  # a broken copy never stays in the store
+        raise
+    engine.store.set_owner(DEMO_ID, DEMO_OWNER)
+    c, trained = manifest["counts"], manifest["provenance"].get("trained", {})
+    psnr_head = (trained.get("held_out") or {}).get("psnr_head")
+    return (f"{c['gaussians'] + c['mouth']} Gaussians, {manifest['face_model']}, trained "
+            f"({trained.get('iterations')} iterations, held-out psnr_head {psnr_head} dB)")
+
+
+LOCAL_HOSTS = ("127.0.0.1", "localhost", "::1")
+
+
+def open_urls(host: str, http_port: int, grpc_port: int, *, tls: bool = False) -> dict[str, str]:
+    """The addresses to open on this machine for a server listening on ``host``: the pages ``demo``, ``docs`` and
+    ``jobs`` (https with TLS) and the gRPC target ``grpc``. A wildcard host (0.0.0.0, ::) is reached as
+    127.0.0.1."""
+    shown = "127.0.0.1" if host in ("", "0.0.0.0", "::", "[::]") else host
+    if ":" in shown and not shown.startswith("["):
+        shown = f"[{shown}]"  # an IPv6 address in a URL
+    base = f"{'https' if tls else 'http'}://{shown}:{http_port}"
+    return {"demo": f"{base}/demo", "docs": f"{base}/docs", "jobs": f"{base}/jobs", "grpc": f"{shown}:{grpc_port}"}
 
 
 class _Uvicorn(uvicorn.Server):
@@ -127,9 +170,8 @@ class Service:
             log.info("removed %d temporary file(s) a stopped process left in the bundle store", len(stale))
         if s.demo_avatar != "none" and not engine.store.ids():
             t0 = time.perf_counter()
-            face_model = await asyncio.to_thread(make_demo_avatar, s, engine)
-            log.info("created the demo avatar %r (%d Gaussians, %s) in %.1f s", DEMO_ID, s.demo_gaussians,
-                     face_model, time.perf_counter() - t0)
+            what = await asyncio.to_thread(make_demo_avatar, s, engine)
+            log.info("created the demo avatar %r (%s) in %.2f s", DEMO_ID, what, time.perf_counter() - t0)
         elif DEMO_ID in engine.store.ids() and not engine.store.sidecars(DEMO_ID)[1].exists():
             engine.store.set_owner(DEMO_ID, DEMO_OWNER)  # a demo made before avatars had owners: public
         self.grpc = GrpcServer(engine, s.host, s.grpc_port)
@@ -153,6 +195,10 @@ class Service:
         if warmed:
             await self.grpc.set_serving(True)
             log.info("ready: gRPC on port %d, HTTP on port %d", self.grpc_port, self.http_port)
+            urls = open_urls(s.host, self.http_port, self.grpc_port, tls=s.tls_cert_file is not None)
+            log.info("open %s (drive the demo avatar), %s (the API), %s (training jobs); gRPC streams: %s%s",
+                     urls["demo"], urls["docs"], urls["jobs"], urls["grpc"],
+                     "" if s.host in LOCAL_HOSTS else f" (listening on {s.host})")
 
     async def _warm_up(self) -> bool:
         """One warm-up frame: of the demo avatar (else the store's first), else of the built-in avatar when that

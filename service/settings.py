@@ -22,7 +22,8 @@ class Settings(BaseSettings):
     model_config = SettingsConfigDict(env_prefix="BLENDSPLAT_", extra="ignore")
 
     data_dir: Path = Field(Path("data"), description="root of the bundle store (bundles/) and caches")
-    host: str = Field("0.0.0.0", description="interface both servers listen on")
+    host: str = Field("127.0.0.1", description="interface both servers listen on (default: this machine only; "
+                                               "0.0.0.0 for every interface, as the container images set)")
     grpc_port: int = Field(50051, ge=0, le=65535, description="0 picks a free port")
     http_port: int = Field(8080, ge=0, le=65535, description="0 picks a free port")
 
@@ -47,10 +48,13 @@ class Settings(BaseSettings):
                                "draining, so load balancers stop routing here first")
     drain_seconds: float = Field(10.0, ge=0, description="SIGTERM: time to finish frames in flight before exit")
 
-    demo_avatar: Literal["open-head", "synthetic", "none"] = Field(
-        "open-head", description="the avatar put in an empty bundle store on start: initialised on the open head "
-                                 "model shipped with the package, synthetic, or none")
-    demo_gaussians: int = Field(64_000, ge=16, description="demo avatar size (face + mouth Gaussians)")
+    demo_avatar: Literal["trained", "open-head", "synthetic", "none"] = Field(
+        "trained", description="the avatar put in an empty bundle store on start: trained (the package's demo "
+                               "avatar, trained by `blendsplat bundle build-demo` on the open head's synthetic "
+                               "video; copied in well under a second), open-head (initialised on the open head "
+                               "model, untrained), synthetic, or none")
+    demo_gaussians: int = Field(64_000, ge=16, description="open-head and synthetic demo avatars' size (face + mouth "
+                                                           "Gaussians; the trained one has its own)")
     demo_blendshapes: int = Field(52, ge=1, description="synthetic demo avatar only (the open head has 52)")
     warmup_size: int = Field(512, ge=16, description="readiness waits for one frame of this size")
 

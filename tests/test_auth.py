@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import ssl
 import subprocess
 import sys
@@ -351,6 +352,7 @@ def test_keys_command_creates_lists_and_revokes_and_a_revoked_key_stops_working(
                           "--name", "from the cli", "--json", *env_dir], capture_output=True, text=True, check=True)
     created = json.loads(out.stdout)
     assert created["key"].startswith("bsk_") and created["scopes"] == ["render"]
+    assert "alembic" not in out.stderr  # the database is at head: nothing migrates, nothing about it is logged
     assert http.get("/v1/avatars", headers=auth(created["key"])).status_code == 200
     listed = subprocess.run([sys.executable, "-m", "service.cli", "keys", "list", "--json", *env_dir],
                             capture_output=True, text=True, check=True)
@@ -362,6 +364,18 @@ def test_keys_command_creates_lists_and_revokes_and_a_revoked_key_stops_working(
     while http.get("/v1/avatars", headers=auth(created["key"])).status_code != 401:
         assert time.monotonic() < deadline, "the revoked key still works"
         time.sleep(0.5)
+
+
+def test_keys_commands_log_migrations_only_when_something_migrates(tmp_path):
+    """A fresh database is migrated and says so (Alembic's "Running upgrade" lines and one summary); after that a
+    `keys` command logs nothing about the database, and Alembic's set-up chatter never shows."""
+    command = [sys.executable, "-m", "service.cli", "keys", "list", "--data-dir", str(tmp_path)]
+    env = {k: v for k, v in os.environ.items() if not k.startswith("BLENDSPLAT_")}
+    first = subprocess.run(command, capture_output=True, text=True, check=True, env=env)
+    assert "Running upgrade" in first.stderr and "migrated the database" in first.stderr
+    assert "setup plugin" not in first.stderr and "Context impl" not in first.stderr
+    again = subprocess.run(command, capture_output=True, text=True, check=True, env=env)
+    assert again.stderr == "" and again.stdout == ""
 
 
 def test_avatar_writes_and_job_submissions_are_audited(server, http, tmp_path, caplog):

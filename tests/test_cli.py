@@ -38,8 +38,37 @@ def test_synth_validate_inspect(bundle, capsys):
     assert manifest["expression_names"] == [f"exp_{i:02d}" for i in range(5)]
     assert manifest["joint_names"] == ["root", "neck", "jaw", "eye_l", "eye_r"]
     assert manifest["counts"]["gaussians"] == 1500
-    assert main(["bundle", "inspect", str(bundle)]) == 0
-    assert "exp_04" in capsys.readouterr().out
+    assert main(["bundle", "inspect", str(bundle)]) == 0  # JSON without --json too: every command prints JSON
+    assert _json(capsys) == manifest
+
+
+def test_bundle_synth_stores_fp16_by_default(tmp_path, capsys):
+    """The README: fp16 (the default) applies to the blendshape pairs and pose correctives."""
+    from render_core.bundle import read_manifest
+
+    out = tmp_path / "default.bundle"
+    assert main(["bundle", "synth", "--out", str(out), "--gaussians", "300", "--blendshapes", "3"]) == 0
+    assert _json(capsys)["precision"] == "fp16" and read_manifest(out)["precision"] == "fp16"
+    assert main(["bundle", "synth", "--out", str(out), "--gaussians", "300", "--blendshapes", "3",
+                 "--precision", "fp32"]) == 0
+    assert _json(capsys)["precision"] == "fp32"
+
+
+def _no_constants(name):
+    raise ValueError(f"not strict JSON: {name}")
+
+
+def test_printed_json_is_strict(capsys):
+    """Non-finite floats (Python's and numpy's, at any depth) print as null: JavaScript's JSON.parse and other strict
+    parsers refuse NaN and Infinity."""
+    from render_core.tools import cli
+
+    cli._emit({"nan": float("nan"), "deep": [{"inf": float("inf")}, (np.float64("-inf"), 1.5)], "ok": 2.0,
+               "n": np.float32(0.25).item(), "text": "NaN"})
+    out = capsys.readouterr().out
+    assert json.loads(out, parse_constant=_no_constants) == {
+        "nan": None, "deep": [{"inf": None}, [None, 1.5]], "ok": 2.0, "n": 0.25, "text": "NaN"}
+    assert cli.dumps({"x": float("nan")}, indent=None) == '{"x": null}'
 
 
 def test_validate_refuses_a_truncated_bundle(bundle, tmp_path, capsys):
@@ -109,6 +138,32 @@ def test_bench_render_json(capsys):
     assert set(report["ms"]) == {"blend", "lbs", "raster", "total"}
     assert report["streams"] == 2 and report["aggregate_fps"] == pytest.approx(2 * report["fps"], rel=1e-3)
     assert 0.4 <= report["coverage"] <= 0.6
+
+
+def test_bench_render_times_the_reference_only_when_asked_and_says_what_it_does(capsys, caplog):
+    """The reference backend's timing is opt-in (--reference-frames, default 0: tens of seconds a frame at 64k
+    Gaussians); every stage is logged on stderr as it starts, the reference's frames one by one."""
+    import logging
+
+    from render_core.raster import default_backend
+    from render_core.tools.cli import build_parser
+
+    assert build_parser().parse_args(["bench", "render"]).reference_frames == 0
+    backend = default_backend()
+    tiny = ["bench", "render", "--backend", backend, "--gaussians", "300", "--blendshapes", "3", "--size", "32",
+            "--frames", "1", "--warmup", "0", "--json"]
+    with caplog.at_level(logging.INFO, logger="render_core.tools.bench"):
+        assert main(tiny) == 0
+    report = _json(capsys)
+    assert "vs_reference" not in report
+    assert "building a synthetic avatar" in caplog.text and "timing 1 frame(s)" in caplog.text
+    if backend == "reference":
+        return
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="render_core.tools.bench"):
+        assert main([*tiny, "--reference-frames", "1"]) == 0
+    assert _json(capsys)["vs_reference"]["frames"] == 1
+    assert "reference backend" in caplog.text and "reference: frame 1/1" in caplog.text
 
 
 def test_console_script_prints_only_json_on_stdout(bundle):

@@ -96,8 +96,8 @@ def test_render_bodies_take_proto_field_names_and_protobufs_json_names(live_serv
         assert r.status_code == 200 and r.headers["content-type"] == "image/jpeg", r.text
 
 
-@pytest.mark.parametrize("demo", ["synthetic", "open-head"])
-def test_the_render_example_works_against_both_demo_avatars(tmp_path, spec, demo):
+@pytest.mark.parametrize("demo", ["trained", "synthetic", "open-head"])
+def test_the_render_example_works_against_every_demo_avatar(tmp_path, spec, demo):
     example = spec["paths"]["/v1/render"]["post"]["requestBody"]["content"]["application/json"]["schema"][
         "examples"][0]
     server = LiveServer(tmp_path / "data", demo_avatar=demo, demo_gaussians=2000)

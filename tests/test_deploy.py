@@ -352,6 +352,29 @@ def test_environment_variables_are_settings(overlay):
     assert "BLENDSPLAT_JOBS_URL" not in config(docs)
 
 
+@pytest.mark.parametrize("overlay", OVERLAYS)
+def test_manifests_listen_on_every_interface(overlay):
+    """Outside a container the servers listen on 127.0.0.1 only (the default); in a pod they must take traffic from
+    the Service, the probes and Prometheus, so every manifest sets the host to all interfaces, explicitly."""
+    from service.settings import Settings
+
+    assert Settings.model_fields["host"].default == "127.0.0.1"
+    docs = rendered(overlay)
+    assert config(docs).get("BLENDSPLAT_HOST") == "0.0.0.0"
+    for workload, c in blendsplat_containers(docs):
+        env = {e["name"]: e.get("value") for e in c.get("env", [])}
+        assert env.get("BLENDSPLAT_HOST", "0.0.0.0") == "0.0.0.0", workload
+        assert "--host" not in c.get("args", []), workload
+
+
+@pytest.mark.parametrize("target", ["cpu", "cuda"])
+def test_dockerfile_images_listen_on_every_interface(target):
+    """The images set BLENDSPLAT_HOST=0.0.0.0 (the default is 127.0.0.1), so the container's published ports and the
+    smoke test reach the servers."""
+    env = " ".join(a for i, a in dockerfile_stages()[target] if i == "ENV")
+    assert re.search(r"(^|\s)BLENDSPLAT_HOST=0\.0\.0\.0(\s|$)", env), env
+
+
 def test_dockerfile_environment_variables_are_settings():
     fields = settings_fields()
     text = (ROOT / "Dockerfile").read_text()

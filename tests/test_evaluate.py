@@ -204,8 +204,14 @@ def test_evaluate_reports_every_held_out_frame(scene, monkeypatch):
 
     saved = json.loads((root / "report.json").read_text())
     assert saved["psnr"] == pytest.approx(result["psnr"]) and saved["frames"] == result["frames"]
-    assert result["contact_sheet"] == saved["contact_sheet"] == str(root / "sheet.png")
+    assert result["contact_sheet"] == str(root / "sheet.png")
     assert result["plots"] == {"contact_sheet": str(root / "sheet.png")}
+    # The file names files relative to its folder, others by name: never this machine's absolute paths (a training
+    # job's report is served to API clients).
+    assert (saved["contact_sheet"], saved["plots"], saved["report"]) == ("sheet.png", {"contact_sheet": "sheet.png"},
+                                                                         "report.json")
+    assert saved["data"] == "ds" and saved["bundle"] is None
+    assert str(root) not in (root / "report.json").read_text()
     w, h, c, px = _read_png(root / "sheet.png")
     rows = min(4, result["frames"])
     assert c == 4 and w > 2 * 48 and h > 48 * rows

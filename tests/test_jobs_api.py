@@ -12,6 +12,7 @@ import json
 import os
 import re
 import secrets
+import shutil
 import signal
 import subprocess
 import sys
@@ -524,6 +525,57 @@ def test_the_sweep_removes_orphaned_work_folders_and_leftovers(tmp_path):
         report = training.sweep()
         assert sorted(p.name for p in work.iterdir()) == sorted([live, "job_orphan_new", "notes"])
         assert report.uploads == report.work_folders == [] and report.stale == 1
+    finally:
+        training.close()
+
+
+def test_a_missing_artefact_of_a_finished_job_says_why(tmp_path):
+    """In process: the 404 of an artefact a finished job lacks says the real reason (no held-out frames, figures
+    the worker could not draw, cancelled, failed, work folder gone), not "written when training ends"."""
+    from service.access.auth import Access
+    from service.access.keys import KeyStore
+    from service.jobs.training import Training, open_stores
+    from service.settings import Settings
+
+    settings = Settings(data_dir=tmp_path / "data", jobs_url=f"sqlite:///{tmp_path / 'data' / 'jobs.db'}")
+    jobs, uploads = open_stores(settings)
+    training = Training(settings, jobs, uploads, access=Access(settings, KeyStore(jobs.engine)),
+                        writable=lambda avatar_id, writer: None)
+
+    def finished(state: str, error: str | None = None, **files: dict) -> str:
+        job_id = training.jobs.submit({"upload_id": "upl_" + "a" * 20, "avatar_id": "a"}).id
+        assert training.jobs.claim("w", 60).id == job_id
+        training.jobs.finish(job_id, "w", state, error=error, result={"avatar_id": "a"} if not error else None)
+        work = training.work_folder(job_id)
+        work.mkdir(parents=True)
+        for name, body in files.items():
+            (work / f"{name}.json").write_text(json.dumps(body))
+        return job_id
+
+    def why(job_id: str, name: str) -> str:
+        with pytest.raises(NotFound) as caught:
+            training.artefact(job_id, name)
+        return str(caught.value)
+
+    try:
+        no_test = finished("succeeded", summary={"plots": {"curves": "curves.png"}})
+        assert "no held-out (test) frames" in why(no_test, "contact-sheet") and "when training ends" not in why(
+            no_test, "contact-sheet")
+        assert "no held-out (test) frames" in why(no_test, "report")
+        no_plots = finished("succeeded", summary={"eval": {"psnr": 30.0}, "plots": {"skipped": "matplotlib is not "
+                                                                                    "installed: pip install x"}},
+                            report={"plots": {"skipped": "matplotlib is not installed: pip install x"}})
+        assert "could not draw it (matplotlib is not installed" in why(no_plots, "contact-sheet")
+        assert "could not draw the training curves (matplotlib" in why(no_plots, "curves")
+        assert "cancelled before training ended" in why(finished("cancelled", error="cancelled"), "contact-sheet")
+        assert "failed before training ended (RuntimeError: boom)" in why(
+            finished("failed", error="RuntimeError: boom"), "report")
+        gone = finished("succeeded")
+        shutil.rmtree(training.work_folder(gone))
+        assert "work folder is gone" in why(gone, "contact-sheet")
+        queued = training.jobs.submit({"upload_id": "upl_" + "a" * 20, "avatar_id": "q"}).id
+        assert "has no contact-sheet yet (contact_sheet.png is written by the worker when training ends)" in why(
+            queued, "contact-sheet")
     finally:
         training.close()
 

@@ -369,6 +369,22 @@ def test_a_wrong_server_exits_2_saying_so(capsys):
         assert f"cannot reach the server at http://127.0.0.1:{port}" in err and "--server" in err
 
 
+def test_submit_checks_the_server_before_packing_the_dataset(dataset, capsys, monkeypatch):
+    """Packing a dataset folder takes seconds to minutes: a wrong server (or a refused key) is said before it."""
+    import socket
+
+    from service.jobs import cli as jobs_cli
+
+    packed = []
+    monkeypatch.setattr(jobs_cli, "pack_dataset", lambda folder, out: packed.append(folder))
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]  # nothing listens there once it is closed
+    code, out, err = run(capsys, "jobs", "submit", str(dataset), "--server", f"http://127.0.0.1:{port}")
+    assert code == 2 and out == "" and f"cannot reach the server at http://127.0.0.1:{port}" in err
+    assert packed == [] and "packing" not in err
+
+
 def test_http_errors_print_the_server_s_code_and_message(up, archive, capsys):
     code, out, err = run(capsys, "jobs", "submit", str(archive), "--avatar-id", "no spaces allowed",
                          *up.args())

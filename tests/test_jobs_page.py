@@ -163,6 +163,10 @@ def test_upload_train_watch_cancel_and_open_a_trained_avatar(driver, tmp_path, t
         assert 0 < cancelled_at < 2000
         assert driver.find_element(By.ID, "cancel").get_attribute("disabled") is not None
         assert not driver.find_element(By.ID, "open-demo").is_displayed()
+        # the download buttons stay disabled, and say why (their tooltip)
+        contact = driver.find_element(By.ID, "download-contact")
+        assert contact.get_attribute("disabled") is not None
+        assert "cancelled before training ended" in contact.get_attribute("title"), contact.get_attribute("title")
         _wait(driver, "the list to show it cancelled", lambda d: "cancelled" in d.find_element(
             By.CSS_SELECTOR, f'#jobs button[data-id="{first_id}"] .badge').get_attribute("textContent"), log=log)
 
@@ -179,6 +183,10 @@ def test_upload_train_watch_cancel_and_open_a_trained_avatar(driver, tmp_path, t
               and d.execute_script("const i = document.getElementById('preview-img');"
                                    "return i.complete && i.naturalWidth > 0;"), log=log)
         assert "ada is in the store" in _text(driver, "result"), _text(driver, "result")
+        # the main install draws the figures (matplotlib): the contact sheet can be downloaded, nothing is missing
+        contact = driver.find_element(By.ID, "download-contact")
+        assert contact.is_displayed() and contact.is_enabled(), contact.get_attribute("title")
+        assert not driver.find_element(By.ID, "artefact-note").is_displayed(), _text(driver, "artefact-note")
         assert _text(driver, "progress-text").startswith("iteration 30 / 30 · 100.0 %")
         assert _chart_points(driver) >= 1 and _chart_points(driver, "chart-psnr") >= 1
         truth_shown = driver.find_element(By.ID, "truth-fig").is_displayed()
@@ -239,6 +247,9 @@ class ScriptedJobs:
 
     JOB = "job_scripted0000000000000001"
     NO_EVENTS = "job_scripted0000000000000002"
+    NO_SHEET = "job_scripted0000000000000003"  # succeeded; its worker could not draw the contact sheet
+    NO_SHEET_REASON = (f"job {NO_SHEET} has no contact-sheet: the worker could not draw it (matplotlib is not "
+                       "installed: pip install 'blendsplat[train]')")
 
     def __init__(self):
         self.lock = threading.Lock()
@@ -313,6 +324,15 @@ class ScriptedJobs:
                     job["progress"] = script.events[1][1] | {"iteration": 5}
                     job["links"] = job["links"] | {"artefacts": {}}
                     self._json(200, job)
+                elif path == f"/v1/jobs/{script.NO_SHEET}":
+                    job = script.job() | {"id": script.NO_SHEET, "state": "succeeded", "cancel_requested": False,
+                                          "result": {"avatar_id": "scripted", "iterations": 100}}
+                    job["links"] = job["links"] | {"artefacts": {
+                        name: f"/v1/jobs/{script.NO_SHEET}/artefacts/{name}" for name in ("report", "log")}}
+                    self._json(200, job)
+                elif path == f"/v1/jobs/{script.NO_SHEET}/artefacts/contact-sheet":
+                    self._json(404, {"error": {"code": "NOT_FOUND", "message": script.NO_SHEET_REASON,
+                                               "field": "name"}})
                 elif path in (f"{base}/artefacts/preview", f"{base}/artefacts/truth") and script.preview:
                     self._send(200, _png(rgb=(200, 120, 60) if path.endswith("preview") else (60, 120, 200)),
                                "image/png")
@@ -429,3 +449,16 @@ def test_events_are_read_with_the_key_and_resumed_after_a_dropped_connection(dri
           > polls + 1, timeout=5)
     unexpected = _unexpected_console(driver)
     assert not unexpected, unexpected
+
+
+def test_a_finished_job_without_its_contact_sheet_says_why(driver, scripted):
+    """The button stays disabled, and the page says the server's reason (the artefact's 404), not nothing."""
+    script, url = scripted
+    driver.get(f"{url}/jobs#{script.NO_SHEET}")
+    _wait(driver, "the finished job", lambda d: _text(d, "job-state") == "succeeded"
+          and d.find_element(By.ID, "artefact-note").is_displayed())
+    contact = driver.find_element(By.ID, "download-contact")
+    assert contact.get_attribute("disabled") is not None
+    assert script.NO_SHEET_REASON in _text(driver, "artefact-note")
+    assert "matplotlib is not installed" in contact.get_attribute("title"), contact.get_attribute("title")
+    assert driver.find_element(By.ID, "download-report").is_enabled()

@@ -22,7 +22,8 @@ def _python_block(heading: str) -> str:
 
 
 def test_library_example_runs_as_written(tmp_path, monkeypatch):
-    write_bundle(synth_avatar(gaussians=400, blendshapes=6, seed=2), tmp_path / "head.bundle")
+    (tmp_path / "scratch").mkdir()
+    write_bundle(synth_avatar(gaussians=400, blendshapes=6, seed=2), tmp_path / "scratch" / "head.bundle")
     monkeypatch.chdir(tmp_path)
     code = _python_block("### Library")
     scope: dict = {}
@@ -30,3 +31,37 @@ def test_library_example_runs_as_written(tmp_path, monkeypatch):
     out = scope["out"]
     assert out.rgb.shape == (4, 512, 512, 3) and out.alpha.shape == (4, 512, 512)
     assert torch.isfinite(out.rgb).all() and out.alpha.amax() > 0.5  # the avatar is in view
+
+
+# What a shell example writes: --out, --workdir, --report, --contact-sheet, --trace, curl -o, tar's archive, and a
+# shell redirection (not 2>, &>, <).
+_WRITES = re.compile(r"(?:--out|--workdir|--report|--contact-sheet|--trace|-o|tar c\w*f)\s+(\S+)|(?<![<2&])>\s*(\S+)")
+
+
+def test_shell_examples_write_only_under_ignored_folders():
+    """A newcomer who runs the README's commands from the repository root leaves nothing untracked beside the
+    sources: every file an example writes is under scratch/ (or the server's data/), both ignored by git; the
+    upper-case names are placeholders and `adapter fit --out` names an adapter id, not a file."""
+    import subprocess
+
+    text = README.read_text(encoding="utf-8")
+    written = []
+    for block in re.findall(r"```bash\n(.*?)```", text, re.S):
+        for line in block.replace("\\\n", " ").splitlines():
+            code = "" if line.lstrip().startswith("#") else line.split(" # ")[0]
+            for match in _WRITES.finditer(code):
+                target = (match.group(1) or match.group(2)).rstrip(";")
+                if target == "/dev/null" or re.fullmatch(r"[A-Z_]+", target) or (
+                        "adapter fit" in code and "/" not in target):
+                    continue
+                written.append(target)
+                assert target == "scratch" or target.startswith(("scratch/", "data/")), (
+                    f"README example writes {target!r} outside scratch/: {code.strip()}")
+    assert len(written) >= 10  # the examples were found
+    root = README.parent
+    ignored = subprocess.run(["git", "check-ignore", "scratch/x", "data/x"], cwd=root, capture_output=True, text=True)
+    if ignored.returncode == 128:  # not a git checkout (an sdist): .gitignore still says it
+        rules = (root / ".gitignore").read_text().split()
+        assert "/scratch/" in rules and "/data/" in rules
+    else:
+        assert ignored.stdout.split() == ["scratch/x", "data/x"], ignored.stderr

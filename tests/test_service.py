@@ -687,6 +687,53 @@ def test_bench_stream_cli_reports_fps_latency_and_flat_memory(live_server, capsy
     assert stalled["frames"] == 2 and stalled["dropped"] > 50  # max_in_flight frames, the rest dropped
 
 
+def _strict(name):
+    raise ValueError(f"not strict JSON: {name}")
+
+
+def test_bench_stream_reads_the_server_s_memory_and_prints_strict_json_when_no_frame_arrives(live_server, capsys,
+                                                                                               monkeypatch):
+    from service import bench_stream
+    from service.cli import build_parser, main
+
+    assert build_parser().parse_args(["bench", "stream", "--avatar", "demo"]).target == "127.0.0.1:50051"
+    assert bench_stream.default_metrics_url("10.1.2.3:50051") == "http://10.1.2.3:8080/metrics"
+    # Without --metrics-url the server's /metrics is found from the target (here: the live server's, on its port).
+    monkeypatch.setattr(bench_stream, "default_metrics_url", lambda target: live_server.http_url + "/metrics")
+    base = ["bench", "stream", "--target", live_server.grpc_target, "--seconds", "0.5", "--warmup", "0", "--size",
+            "32", "--json"]
+    assert main([*base, "--avatar", "demo"]) == 0
+    report = json.loads(capsys.readouterr().out, parse_constant=_strict)
+    assert report["server_rss_mb"]["before"] > 0 and report["server_rss_mb"]["end"] > 0
+    # No frame at all (an unknown avatar): exit 1, the reason on stderr, and the figures null, never NaN.
+    assert main([*base, "--avatar", "no-such-avatar"]) == 1
+    out, err = capsys.readouterr()
+    failed = json.loads(out, parse_constant=_strict)
+    assert failed["frames"] == 0 and failed["latency_ms"]["p50"] is None and failed["server_ms"]["p99"] is None
+    assert "no frames from" in err and "no-such-avatar" in err
+    # A /metrics that cannot be read: null, and the report and stderr say why.
+    monkeypatch.setattr(bench_stream, "default_metrics_url", lambda target: "http://127.0.0.1:9/metrics")
+    assert main([*base, "--avatar", "demo"]) == 0
+    out, err = capsys.readouterr()
+    report = json.loads(out, parse_constant=_strict)
+    assert report["server_rss_mb"] == {"before": None, "end": None} and "127.0.0.1:9" in report["server_rss_note"]
+    assert "server_rss_mb is null" in err
+
+
+def test_bench_stream_against_a_closed_port_exits_non_zero_saying_why():
+    """What a newcomer types with a wrong port: a quick failure, the reason on stderr, stdout empty or strict JSON."""
+    import subprocess
+    import sys
+
+    done = subprocess.run([sys.executable, "-m", "service.cli", "bench", "stream", "--target", "127.0.0.1:1",
+                           "--avatar", "demo", "--streams", "1", "--seconds", "1", "--json"],
+                          capture_output=True, text=True, timeout=60)
+    assert done.returncode != 0 and done.stderr.strip()
+    assert "127.0.0.1:1" in done.stderr and "blendsplat serve" in done.stderr
+    for line in done.stdout.splitlines():
+        json.loads(line, parse_constant=_strict)
+
+
 def test_serve_command_starts_ready_and_exits_cleanly_on_sigterm(tmp_path):
     """The real `blendsplat serve` process: demo avatar on first start, ready, then SIGTERM drains and exits 0."""
     import os
@@ -700,10 +747,11 @@ def test_serve_command_starts_ready_and_exits_cleanly_on_sigterm(tmp_path):
         with socket.socket() as s:
             s.bind(("127.0.0.1", 0))
             ports.append(s.getsockname()[1])
-    env = dict(os.environ, BLENDSPLAT_DEMO_GAUSSIANS="2000", BLENDSPLAT_DEMO_AVATAR="open-head",
-               BLENDSPLAT_WARMUP_SIZE="64", BLENDSPLAT_DRAIN_SECONDS="3")
+    env = {k: v for k, v in os.environ.items() if k != "BLENDSPLAT_HOST"}  # the default host: 127.0.0.1
+    env.update(BLENDSPLAT_DEMO_GAUSSIANS="2000", BLENDSPLAT_DEMO_AVATAR="open-head", BLENDSPLAT_WARMUP_SIZE="64",
+               BLENDSPLAT_DRAIN_SECONDS="3")
     proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--grpc-port", str(ports[0]),
-                             "--http-port", str(ports[1]), "--data-dir", str(tmp_path), "--host", "127.0.0.1"],
+                             "--http-port", str(ports[1]), "--data-dir", str(tmp_path)],
                             env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         deadline = time.monotonic() + 120
@@ -718,6 +766,7 @@ def test_serve_command_starts_ready_and_exits_cleanly_on_sigterm(tmp_path):
         else:
             pytest.fail("the service did not become ready")
         assert (tmp_path / "bundles" / "demo.bundle").is_file()
+        assert listening_addresses(ports[1]) in ({"127.0.0.1"}, None)  # this machine only, unless told otherwise
         key = (tmp_path / "admin.key").read_text().strip()  # secure by default: an admin key was created
         assert (tmp_path / "admin.key").stat().st_mode & 0o777 == 0o600
         with grpc.insecure_channel(f"127.0.0.1:{ports[0]}") as channel:
@@ -727,10 +776,45 @@ def test_serve_command_starts_ready_and_exits_cleanly_on_sigterm(tmp_path):
             proc.send_signal(signal.SIGTERM)
             assert stream.next().status.code == pb.UNAVAILABLE
         assert proc.wait(timeout=20) == 0
-        assert "draining" in proc.stdout.read()
+        log = proc.stdout.read()
+        assert "draining" in log
+        # The start-up log says what to open.
+        for page in ("demo", "docs", "jobs"):
+            assert f"http://127.0.0.1:{ports[1]}/{page}" in log, log[-2000:]
+        assert f"gRPC streams: 127.0.0.1:{ports[0]}" in log
     finally:
         proc.kill()
         proc.wait()
+
+
+def listening_addresses(port: int) -> set[str] | None:
+    """The IPv4 addresses a TCP socket listens on at ``port`` (Linux's /proc/net/tcp; None elsewhere)."""
+    import ipaddress
+    from pathlib import Path
+
+    try:
+        lines = Path("/proc/net/tcp").read_text().splitlines()[1:]
+    except OSError:
+        return None
+    found = set()
+    for line in lines:
+        local, state = line.split()[1], line.split()[3]
+        address, hex_port = local.split(":")
+        if state == "0A" and int(hex_port, 16) == port:  # LISTEN
+            found.add(str(ipaddress.IPv4Address(bytes.fromhex(address)[::-1])))
+    return found
+
+
+def test_the_addresses_to_open():
+    from service.server import open_urls
+
+    assert open_urls("127.0.0.1", 8080, 50051) == {
+        "demo": "http://127.0.0.1:8080/demo", "docs": "http://127.0.0.1:8080/docs",
+        "jobs": "http://127.0.0.1:8080/jobs", "grpc": "127.0.0.1:50051"}
+    assert open_urls("0.0.0.0", 8443, 50051, tls=True)["demo"] == "https://127.0.0.1:8443/demo"
+    assert open_urls("::", 80, 1)["jobs"] == "http://127.0.0.1:80/jobs"
+    assert open_urls("::1", 80, 1)["docs"] == "http://[::1]:80/docs"
+    assert open_urls("10.0.0.7", 80, 1)["grpc"] == "10.0.0.7:1"
 
 
 def test_avatar_cache_is_lru_under_its_budget_and_keeps_avatars_in_use(tmp_path):

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from render_core.bundle import read_bundle
+from render_core.bundle import read_bundle, read_manifest, validate_bundle
 from render_core.data import read_dataset
 from render_core.data.frames import frame_inputs, targets
 from render_core.data.generate import synth_dataset
@@ -22,7 +22,14 @@ from render_core.train import CONSISTENCY, Outcome, Progress, TrainableAvatar, T
 from render_core.train.geometry import closest_points, consistency_range, displacement_magnitudes
 from render_core.train.initialize import init_avatar
 from render_core.train.losses import MouthCylinder
-from render_core.train.trainer import forward, last_checkpoint, load_checkpoint, make_optimizer, raster_step
+from render_core.train.trainer import (
+    dataset_digest,
+    forward,
+    last_checkpoint,
+    load_checkpoint,
+    make_optimizer,
+    raster_step,
+)
 from tests.test_initialize import tetra_model
 
 TOY = get_preset("tiny").with_(gaussians=400, mouth=40, sh_every=15, checkpoint_every=1000, log_every=1,
@@ -242,6 +249,21 @@ def test_bundle_renders_the_recorded_psnr(trained, toy):
         rgb_t, _ = targets(ds, [index])
         got = psnr(renderer.render(frame, cams).rgb, rgb_t)
         assert got == pytest.approx(recorded, abs=0.1)
+
+
+def test_bundle_records_the_dataset_the_training_and_the_held_out_figures(trained, toy, head):
+    summary, out = trained
+    manifest = read_manifest(out / "toy.bsplat")
+    t = manifest["provenance"]["trained"]
+    assert {k: t[k] for k in ("iterations", "preset", "seed", "consistency")} == {
+        "iterations": 50, "preset": "tiny", "seed": 0, "consistency": "all"}
+    assert t["dataset"] == {"name": "data", "frames": 6, "width": 64, "height": 64, "train": 5, "test": 1,
+                            "face_model": head.name, "digest": dataset_digest(toy)}
+    assert t["dataset"]["digest"].startswith("sha256:") and dataset_digest(toy) == dataset_digest(str(toy))
+    e = summary["eval"]
+    assert t["held_out"] == {"split": "test", "frames": 1, **{k: round(e[k], 4) for k in ("psnr_head", "psnr",
+                                                                                           "ssim")}}
+    assert validate_bundle(out / "toy.bsplat")["digest"] == manifest["digest"]  # rewritten whole, still valid
 
 
 def test_resume_equals_an_uninterrupted_run(toy, head, tmp_path):

@@ -154,6 +154,12 @@ def test_a_job_trains_commits_its_avatar_and_records_its_progress(reference):
     for name in ("log.jsonl", "summary.json", "curves.png", "report.json", "contact_sheet.png", "preview.png",
                  "avatar.bundle"):
         assert (work / name).is_file(), name
+    # The JSON artefacts (served to API clients) name files relative to the work folder: no path of this machine's.
+    for name in ("report.json", "summary.json"):
+        text = (work / name).read_text()
+        assert str(settings.data_dir.resolve()) not in text and str(settings.data_dir) not in text, name
+    assert json.loads((work / "report.json").read_text())["contact_sheet"] == "contact_sheet.png"
+    assert json.loads((work / "summary.json").read_text())["bundle"] == "avatar.bundle"
     assert job.checkpoint_path == str(work / "checkpoints" / "ckpt_0000040.pt") and Path(job.checkpoint_path).is_file()
     assert (work / "avatar.bundle").read_bytes() == path.read_bytes()
     assert not list(work.glob(".*"))  # no temporary preview left

@@ -12,7 +12,9 @@ avatar's face-model coefficients and joint rotations. It is an ONNX model plus a
   names and shapes that match the manifest, loads in onnxruntime);
 - :mod:`.runtime`: one onnxruntime session per adapter (CPU, one intra-op thread), batched, non-finite output
   refused per frame;
-- :mod:`.smoothing`: the One Euro filter for noisy tracker input.
+- :mod:`.smoothing`: the One Euro filter for noisy tracker input;
+- :mod:`.vocabularies`: capture vocabularies (MediaPipe's 52 blendshapes, Live Link Face's columns), their
+  mapping onto the open head's ARKit names, and the adapters made from them without a fit.
 """
 
 from .manifest import AdapterError, AdapterManifest

@@ -5,7 +5,8 @@ An adapter is an ONNX model plus this manifest (JSON, beside the model: ``<id>.o
     format        "blendsplat-adapter"
     version       1
     id            the adapter's id
-    source        {"convention": "arkit-52" | "flame" | "custom", "face_model": name or "",
+    source        {"convention": "arkit-52" | "flame" | "mediapipe-52" | "live-link-face" | "custom",
+                   "face_model": name or "",
                    "names": [S input names]}   expression names, and "<joint>.x/.y/.z" for a source joint's
                                               axis-angle components (e.g. FLAME's jaw pose: jaw.x, jaw.y, jaw.z)
     target        {"face_model": name, "expression_names": [T], "joint_names": [J],
@@ -31,7 +32,7 @@ VERSION = 1
 INPUT = "source"
 OUTPUT_EXPRESSION = "expression"
 OUTPUT_JOINTS = "joints"
-CONVENTIONS = ("arkit-52", "flame", "custom")
+CONVENTIONS = ("arkit-52", "flame", "mediapipe-52", "live-link-face", "custom")
 AXES = ("x", "y", "z")
 MAX_NAMES = 1024
 _NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.:-]{0,127}$")
@@ -50,11 +51,15 @@ def joint_component(name: str) -> tuple[str, int] | None:
 
 def convention_of(names: list[str]) -> str:
     """The convention a list of source names follows: "arkit-52" (the 52 ARKit blendshape names, any order),
-    "flame" (exp_00... and optionally jaw/eye pose components), else "custom"."""
+    "flame" (exp_00... and optionally jaw/eye pose components), a capture vocabulary's ("mediapipe-52",
+    "live-link-face": exactly its names, any order; :mod:`.vocabularies`), else "custom"."""
     from ..facemodel.open_head import ARKIT_52
+    from .vocabularies import convention_of_names
 
     if set(names) == set(ARKIT_52) and len(names) == len(ARKIT_52):
         return "arkit-52"
+    if (vocabulary := convention_of_names(names)) is not None:
+        return vocabulary
     if names and all(re.fullmatch(r"exp_\d{2,3}", n) or (joint_component(n) or ("",))[0] in ("jaw", "eye_l", "eye_r",
                                                                                              "neck")
                      for n in names):

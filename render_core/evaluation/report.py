@@ -16,12 +16,17 @@ The metrics are :mod:`.metrics`' (the same SSIM as the training loss, with valid
 borders). Identical images have an infinite PSNR; every PSNR here is capped at :data:`PSNR_CAP` (100 dB, an MSE
 of 1e-10) so that reports stay finite, standard JSON. Averages are means of the per-frame values (the usual convention).
 Predictions are clamped to [0, 1] before scoring.
+
+The report file (``report=``) names files relative to its own folder, others by their name alone
+(:func:`relative_paths`): a training job's report is served to API clients, and the machine's absolute paths are
+none of their business. The returned dict keeps the paths as given.
 """
 
 from __future__ import annotations
 
 import json
 import logging
+import os
 import time
 from pathlib import Path
 
@@ -59,6 +64,44 @@ def _lpips_metric(width: int, height: int):
     return fn, note
 
 
+# ------------------------------------------------------------------------------------------------- the file
+def relative_path(path: str | os.PathLike | None, base: str | os.PathLike) -> str | None:
+    """``path`` as the reader of a file in ``base`` may see it: relative to ``base`` when it is inside it (e.g.
+    ``contact_sheet.png``), else its name alone (the dataset's folder name, the bundle's file name). None stays
+    None."""
+    if path is None:
+        return None
+    target, folder = Path(path).resolve(), Path(base).resolve()
+    try:
+        return target.relative_to(folder).as_posix() or "."
+    except ValueError:
+        return target.name
+
+
+def relative_paths(record: dict, base: str | os.PathLike, keys=("bundle", "data", "report", "contact_sheet",
+                                                               "curves", "workdir")) -> dict:
+    """A copy of a JSON record (a report, a summary) with the file names under ``keys``, at any depth, made
+    relative to ``base`` (:func:`relative_path`); and in text (``notes``), the LPIPS weights' path (a file of the
+    machine's, from ``BLENDSPLAT_LPIPS_WEIGHTS``) replaced by its name."""
+    from .lpips import ENV
+
+    weights = os.environ.get(ENV, "").strip()
+
+    def walk(value, key=None):
+        if isinstance(value, dict):
+            return {k: walk(v, k) for k, v in value.items()}
+        if isinstance(value, list):
+            return [walk(v) for v in value]
+        if isinstance(value, str):
+            if key in keys:
+                return relative_path(value, base)
+            if weights and weights in value:
+                return value.replace(weights, Path(weights).name)
+        return value
+
+    return walk(record)
+
+
 # ------------------------------------------------------------------------------------------------- evaluation
 def split_indices(dataset, split: str) -> np.ndarray:
     """The frame indices of ``split``: "test" (held out), "train" or "all"."""
@@ -85,7 +128,8 @@ def evaluate(bundle_or_avatar, data_dir, split: str = "test", batch: int = 4, co
     "width", "height", "backend", "notes", "seconds"}; "bundle" is None when an Avatar was given. With
     ``contact_sheet`` also "contact_sheet" (its path) and "plots" ({"contact_sheet": path}); without matplotlib
     (the ``train`` extra) the sheet is skipped, not an error: "contact_sheet" is None, "plots" is {"skipped":
-    reason} and the reason is logged and added to "notes". With ``report`` also "report" (its path).
+    reason} and the reason is logged and added to "notes". With ``report`` also "report" (its path); in the file
+    itself every path is relative to the report's folder or a name alone (:func:`relative_paths`).
 
     Raises DatasetError when the dataset is malformed, does not animate this avatar (other expression or joint
     names) or has no frame in ``split``; BundleError for an unreadable bundle; ValueError for a bad argument."""
@@ -169,6 +213,7 @@ def evaluate(bundle_or_avatar, data_dir, split: str = "test", batch: int = 4, co
         report = Path(report)
         report.parent.mkdir(parents=True, exist_ok=True)
         result["report"] = str(report)
+        saved = relative_paths(result, report.parent)
         with atomic_path(report) as tmp:
-            tmp.write_text(json.dumps(result, indent=2, allow_nan=False) + "\n", encoding="utf-8")
+            tmp.write_text(json.dumps(saved, indent=2, allow_nan=False) + "\n", encoding="utf-8")
     return result

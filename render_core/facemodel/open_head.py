@@ -193,6 +193,10 @@ def build_open_head(data_dir: Path | None = None) -> FaceModel:
 
 
 SHIPPED = Path(__file__).with_name("open-head.facemodel.gz")
+DEMO_AVATAR = Path(__file__).with_name("demo-avatar.bsplat")
+"""The demo avatar shipped with the package (the service's default ``demo``): trained by our own pipeline on the
+open head's synthetic video and written compact (schema 2, fp16). ``blendsplat bundle build-demo --out
+render_core/facemodel/demo-avatar.bsplat`` rebuilds it (render_core/tools/demo.py); its provenance records how."""
 
 
 def open_head() -> FaceModel:

@@ -4,14 +4,17 @@
 Rules: every timed frame gets fresh random expression coefficients and a fresh random pose (nothing can be cached
 between frames), and the head is framed to cover 40-60% of the image (the focal length is calibrated on the
 neutral frame before timing). Times are medians over the timed frames; ``total`` is the wall-clock time of the
-whole render call. For a non-reference backend the same run also times the reference backend on the same avatar
-and camera (``vs_reference``), and for the native backend a memory-bandwidth probe reads as many bytes as one
-blend streams, so the blend is reported against that bound. The cuda backend's stage times come from CUDA events
+whole render call. With ``reference_frames`` (opt-in: the torch reference takes tens of seconds a frame at 64k
+Gaussians) a non-reference backend's run also times the reference backend on the same avatar and camera
+(``vs_reference``), and for the native backend a memory-bandwidth probe reads as many bytes as one blend streams, so
+the blend is reported against that bound. Each stage is logged (``render_core.tools.bench``, INFO: the command's
+stderr) as it starts, the reference's frames one by one. The cuda backend's stage times come from CUDA events
 (``shade``, the SH colour, is its own stage there) and its report names the GPU.
 """
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 import platform
@@ -31,6 +34,7 @@ from ..renderer import AvatarRenderer
 from .synth import synth_avatar
 
 TARGET_COVERAGE = 0.5
+log = logging.getLogger(__name__)
 
 
 def coverage(alpha: torch.Tensor) -> float:
@@ -68,7 +72,10 @@ def random_frames(avatar: Avatar, batch: int, g: torch.Generator) -> Frame:
 STAGES = ("blend", "lbs", "shade", "deform", "raster")  # what a renderer's timings may hold, in order
 
 
-def _time_frames(renderer: AvatarRenderer, cams: Cameras, frames: int, warmup: int, g: torch.Generator) -> dict:
+def _time_frames(renderer: AvatarRenderer, cams: Cameras, frames: int, warmup: int, g: torch.Generator,
+                 label: str | None = None) -> dict:
+    """Medians of ``frames`` timed renders after ``warmup``; with ``label`` each render is logged as it ends (for
+    slow backends: the reference)."""
     stages: dict[str, list[float]] = {}
     totals: list[float] = []
     covs: list[float] = []
@@ -78,6 +85,9 @@ def _time_frames(renderer: AvatarRenderer, cams: Cameras, frames: int, warmup: i
         t0 = time.perf_counter()
         out = renderer.render(frame, cams)
         total = (time.perf_counter() - t0) * 1e3
+        if label is not None:
+            log.info("%s: %s %d/%d: %.1f s", label, "warm-up frame" if i < warmup else "frame",
+                     i + 1 if i < warmup else i + 1 - warmup, warmup if i < warmup else frames, total / 1e3)
         if i < warmup:
             continue
         timings = out.timings or {}
@@ -135,7 +145,7 @@ def bench_render(
     precision: str = "fp16",
     seed: int = 0,
     avatar: Avatar | None = None,
-    reference_frames: int = 2,
+    reference_frames: int = 0,
     threads: int = 0,
     trace: str | None = None,
     layout: str = "dense",
@@ -145,6 +155,10 @@ def bench_render(
 
     ``trace``: also profile a few more frames with torch.profiler, write its Chrome trace there and add the
     operators that took the most time (``profile``) to the report.
+
+    ``reference_frames``: also time that many frames of the torch reference backend on the same avatar and camera
+    (``vs_reference``: the speed-up); 0 (the default) skips it: at 64k Gaussians and 512 px one reference frame
+    takes tens of seconds.
 
     ``precision`` is the blendshape storage: the synthetic avatar's ("fp32" or "fp16"), and for the cuda backend
     the storage on the GPU ("bf16" too, from an fp16 avatar)."""
@@ -156,12 +170,15 @@ def bench_render(
                           field="precision")
     if avatar is None:
         stored = "fp16" if precision == "bf16" else precision
+        log.info("building a synthetic avatar: %d Gaussians, %d blendshapes, %s", gaussians, blendshapes, stored)
         avatar = synth_avatar(gaussians, blendshapes, seed=seed, sh_degree=sh_degree).with_precision(stored)
+    log.info("preparing the %s renderer and framing the camera", backend)
     # bf16 is a storage on the GPU only (from the fp16 avatar); otherwise every backend stores the avatar's own.
     renderer = AvatarRenderer(avatar, backend, threads=threads, precision="bf16" if precision == "bf16" else None,
                               layout=layout, fuse=fuse)
     cams = framed_camera(avatar, size).expand(streams)
     g = torch.Generator().manual_seed(seed + 1)
+    log.info("timing %d frame(s) of %d stream(s) at %d px (after %d warm-up)", frames, streams, size, warmup)
     timed = _time_frames(renderer, cams, frames, warmup, g)
     ms = timed["ms"]
     fps = 1000.0 / ms["total"]
@@ -188,6 +205,7 @@ def bench_render(
     }
     if renderer.native is not None:
         stats = renderer.stats
+        log.info("memory-bandwidth probe over %.0f MB (one blend's bytes)", stats.blend_bytes / 1e6)
         # Best of three probes (each the best of five passes): the machine is shared, a single probe can read low.
         probe = max((native.bandwidth_probe(stats.blend_bytes, threads) for _ in range(3)), key=lambda p: p["gbps"])
         bound_ms = stats.blend_bytes / (probe["gbps"] * 1e9) * 1e3
@@ -209,9 +227,12 @@ def bench_render(
         if renderer.fuse_error:
             report["fuse_error"] = renderer.fuse_error
     if trace is not None:
+        log.info("profiling 20 frames with torch.profiler -> %s", trace)
         report["profile"] = profile_frames(renderer, cams, g, trace)
     if renderer.backend != "reference" and reference_frames > 0:
-        ref = _time_frames(AvatarRenderer(avatar, "reference"), cams, reference_frames, 1, g)
+        log.info("timing %d frame(s) of the torch reference backend for the speed-up (slow: tens of seconds a "
+                 "frame at 64k Gaussians; --reference-frames 0 skips it)", reference_frames)
+        ref = _time_frames(AvatarRenderer(avatar, "reference"), cams, reference_frames, 1, g, label="reference")
         ref_fps = 1000.0 / ref["ms"]["total"]
         report["vs_reference"] = {"reference_fps": round(ref_fps, 4), "speedup": round(fps / ref_fps, 1),
                                   "reference_ms": ref["ms"], "frames": reference_frames}

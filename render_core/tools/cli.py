@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
 import sys
 from pathlib import Path
 
@@ -14,9 +15,32 @@ from ..errors import BlendsplatError
 log = logging.getLogger("blendsplat")
 
 
-def _emit(obj: dict) -> None:
-    sys.stdout.write(json.dumps(obj, indent=2) + "\n")
+def finite(obj):
+    """``obj`` with every non-finite float (NaN, +-Infinity; numpy's too) replaced by None, recursively through dicts,
+    lists and tuples: what strict JSON parsers (JavaScript's JSON.parse, Go, ...) accept."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: finite(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [finite(v) for v in obj]
+    return obj
+
+
+def dumps(obj, indent: int | None = 2) -> str:
+    """Strict JSON text of ``obj``: non-finite floats become null (:func:`finite`), and ``allow_nan=False`` refuses
+    anything that would still print NaN or Infinity. Every JSON result a ``blendsplat`` command prints goes through
+    here."""
+    return json.dumps(finite(obj), indent=indent, allow_nan=False)
+
+
+def emit(obj, indent: int | None = 2) -> None:
+    """Print one JSON result on stdout (strict: :func:`dumps`)."""
+    sys.stdout.write(dumps(obj, indent) + "\n")
     sys.stdout.flush()
+
+
+_emit = emit
 
 
 class _Bar:
@@ -82,20 +106,10 @@ def cmd_bundle_init(args: argparse.Namespace) -> int:
 
 
 def cmd_bundle_inspect(args: argparse.Namespace) -> int:
+    """The bundle's whole manifest as JSON (what every command prints: JSON results on stdout)."""
     from ..bundle import read_manifest
 
-    manifest = read_manifest(args.file)
-    if args.json:
-        _emit(manifest)
-        return 0
-    c = manifest["counts"]
-    print(f"{args.file}: blendsplat avatar, schema {manifest['schema_version']}, face model "
-          f"{manifest['face_model']}")
-    print(f"  gaussians {c['gaussians']} + mouth {c['mouth']}, blendshapes {c['blendshapes']}, "
-          f"SH degree {manifest['sh_degree']}, {manifest['precision']}, raster {manifest['raster_mode']}")
-    print(f"  joints: {', '.join(manifest['joint_names'])} (parents {manifest['joint_parents']}); "
-          f"mouth follows {' / '.join(manifest['mouth_joint_names'])}")
-    print(f"  expressions: {', '.join(manifest['expression_names'])}")
+    _emit(read_manifest(args.file))
     return 0
 
 
@@ -191,6 +205,20 @@ def cmd_bench_codecs(args: argparse.Namespace) -> int:
         for codec, r in report["codecs"].items():
             print(f"{codec}: encode {r['encode_ms']['median']} ms (p95 {r['encode_ms']['p95']} ms), "
                   f"{r['bytes_per_frame']:.0f} bytes/frame, {r['mbit_s_at_30fps']} Mbit/s at 30 fps")
+    return 0
+
+
+def cmd_bundle_build_demo(args: argparse.Namespace) -> int:
+    from .demo import build_demo_avatar
+
+    with _Bar("train", "it") as bar:
+        summary = build_demo_avatar(args.out, frames=args.frames, size=args.size, data_seed=args.data_seed,
+                                    preset=args.preset, iterations=args.iterations, gaussians=args.gaussians,
+                                    seed=args.seed, threads=args.threads, workdir=args.workdir,
+                                    progress=None if args.quiet else bar)
+    log.info("%s %s (%d bytes, held-out psnr_head %.2f dB)", "kept" if summary["unchanged"] else "wrote",
+             args.out, summary["bytes"], summary["psnr_head"])
+    _emit(summary)
     return 0
 
 
@@ -291,6 +319,51 @@ def cmd_adapter_fit(args: argparse.Namespace) -> int:
                             target_joints=joints, ridge=args.ridge)
     log.info("wrote adapter %s (%s -> %s)", args.out, source.name, target.name)
     _emit(summary)
+    return 0
+
+
+def cmd_adapter_make(args: argparse.Namespace) -> int:
+    """An adapter from a capture vocabulary (render_core.adapters.vocabularies), with nothing but the install: the
+    ONNX model and its manifest (what ``PUT /v1/adapters/{id}`` takes) in ``--out``, validated as an upload is."""
+    from ..adapters.files import check_adapter_id, write_adapter
+    from ..adapters.onnx_model import model_bytes
+    from ..adapters.validate import validate_model
+    from ..adapters.vocabularies import make_adapter
+    from ..atomic import atomic_path
+
+    if args.id is not None:
+        check_adapter_id(args.id, field="id")
+    result = make_adapter(args.source, _facemodel_arg(args.target), adapter_id=args.id)
+    m = result.manifest
+    check_adapter_id(m.id, field="id")
+    data = model_bytes(m, result.weights, result.bias)
+    validate_model(data, m)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    model_path, manifest_path = out / f"{m.id}.onnx", out / f"{m.id}.manifest.json"
+    with atomic_path(model_path) as tmp:
+        tmp.write_bytes(data)
+    with atomic_path(manifest_path) as tmp:
+        tmp.write_text(json.dumps(m.to_dict(), indent=1) + "\n", encoding="utf-8")
+    if args.data_dir is not None:
+        write_adapter(_adapter_dir(args), data, m)
+    log.info("wrote adapter %s (%s -> %s): %s, %s", m.id, args.source, m.target_face_model, model_path, manifest_path)
+    _emit({"id": m.id, "model": str(model_path), "manifest": str(manifest_path), "source": args.source,
+           "source_convention": m.source_convention, "inputs": m.num_source, "source_names": m.source_names,
+           "target": m.target_face_model, "expressions": m.num_expressions, "joints": m.target_joint_names,
+           "model_bytes": len(data), "stored": None if args.data_dir is None else str(_adapter_dir(args)),
+           "fit": result.stats})
+    return 0
+
+
+def cmd_adapter_vocabulary(args: argparse.Namespace) -> int:
+    from ..adapters.vocabularies import VOCABULARIES, vocabulary
+
+    if args.name is None:
+        _emit({"vocabularies": [{"name": v.name, "convention": v.convention, "names": len(v.names),
+                                 "description": v.description} for v in VOCABULARIES.values()]})
+    else:
+        _emit(vocabulary(args.name).to_dict())
     return 0
 
 
@@ -415,7 +488,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     r = evaluate(args.bundle, args.data, split=args.split, batch=args.batch, contact_sheet=args.contact_sheet,
                  report=args.report)
     if args.json:
-        sys.stdout.write(json.dumps(r, indent=2, allow_nan=False) + "\n")
+        _emit(r)
         return 0
 
     def fmt(v: float | None, digits: int) -> str:
@@ -471,7 +544,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _add_bundle_commands(sub: argparse._SubParsersAction) -> None:
-    """`bundle synth | init | inspect | validate | convert`."""
+    """`bundle synth | init | inspect | validate | convert | build-demo`."""
     bundle = sub.add_parser("bundle", help="create, inspect and validate avatar bundles")
     bsub = bundle.add_subparsers(dest="bundle_command", required=True)
     s = bsub.add_parser("synth", help="write a random but well-formed head-sized bundle (FLAME joints)")
@@ -481,7 +554,9 @@ def _add_bundle_commands(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--sh-degree", type=int, default=3, choices=range(4))
     s.add_argument("--mouth", type=int, default=None, help="mouth Gaussians (default gaussians // 8)")
-    s.add_argument("--precision", choices=("fp32", "fp16"), default="fp32")
+    s.add_argument("--precision", choices=("fp32", "fp16"), default="fp16",
+                   help="storage of the blendshape pairs and pose correctives (default fp16, as production bundles; "
+                        "the neutral and mouth Gaussians stay fp32)")
     s.add_argument("--raster-mode", choices=RASTER_MODES, default="classic")
     s.add_argument("--local", action="store_true",
                    help="blendshapes with compact support, as a face model's (zero pairs are not stored); "
@@ -501,9 +576,10 @@ def _add_bundle_commands(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--precision", choices=("fp32", "fp16"), default="fp16")
     s.add_argument("--seed", type=int, default=0)
     s.set_defaults(fn=cmd_bundle_init)
-    s = bsub.add_parser("inspect", help="print a bundle's manifest")
+    s = bsub.add_parser("inspect", help="print a bundle's manifest (schema, face model, counts, names, precision, "
+                                        "digest, provenance) as JSON")
     s.add_argument("file", type=Path)
-    s.add_argument("--json", action="store_true", help="the whole manifest as JSON")
+    s.add_argument("--json", action="store_true", help=argparse.SUPPRESS)  # accepted: JSON is the only output
     s.set_defaults(fn=cmd_bundle_inspect)
     s = bsub.add_parser("validate", help="fully check a bundle (digest, shapes, finite values); exit 0 if valid")
     s.add_argument("file", type=Path)
@@ -515,6 +591,24 @@ def _add_bundle_commands(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--precision", choices=("fp32", "fp16"), default=None, help="default: the input's")
     s.add_argument("--schema", type=int, choices=(1, 2), default=2, help="schema version to write (default 2)")
     s.set_defaults(fn=cmd_bundle_convert)
+    s = bsub.add_parser("build-demo", help="build the trained demo avatar the package ships (the synthetic video of "
+                                           "the open head, trained, written compact: schema 2, fp16, <= 16 MiB); "
+                                           "about 5 min on 2 cores")
+    s.add_argument("--out", required=True, type=Path,
+                   help="the bundle to write (render_core/facemodel/demo-avatar.bsplat: the shipped one); left as "
+                        "it is when the rebuild gives the same content")
+    s.add_argument("--frames", type=int, default=300, help="frames of the synthetic video")
+    s.add_argument("--size", type=int, default=256, help="its width and height")
+    s.add_argument("--data-seed", type=int, default=7, help="its seed")
+    s.add_argument("--preset", choices=("tiny", "paper"), default="tiny")
+    s.add_argument("--iterations", type=int, default=3000)
+    s.add_argument("--gaussians", type=int, default=12_000, help="initial face Gaussians (densified up to 1.5x)")
+    s.add_argument("--seed", type=int, default=0, help="training seed")
+    s.add_argument("--threads", type=int, default=2,
+                   help="torch and rasterizer threads (fixed for reproducibility; the shipped file used 2)")
+    s.add_argument("--workdir", type=Path, default=None, help="keep the dataset and the training's work folder here")
+    s.add_argument("--quiet", action="store_true", help="no progress bar")
+    s.set_defaults(fn=cmd_bundle_build_demo)
 
 
 def _add_facemodel_commands(sub: argparse._SubParsersAction) -> argparse._SubParsersAction:
@@ -542,8 +636,8 @@ def _add_facemodel_commands(sub: argparse._SubParsersAction) -> argparse._SubPar
 
 
 def _add_adapter_commands(sub: argparse._SubParsersAction) -> None:
-    """`adapter fit | list | show | validate`."""
-    ad = sub.add_parser("adapter", help="retargeting adapters (ONNX): fit, list, show, validate")
+    """`adapter fit | make | vocabulary | list | show | validate`."""
+    ad = sub.add_parser("adapter", help="retargeting adapters (ONNX): fit, make, vocabulary, list, show, validate")
     asub = ad.add_subparsers(dest="adapter_command", required=True)
     s = asub.add_parser("fit", help="fit the linear map from one face model's coefficients to another's (registration "
                                     "for different topologies) and store it as <data-dir>/adapters/<ID>.onnx")
@@ -556,6 +650,22 @@ def _add_adapter_commands(sub: argparse._SubParsersAction) -> None:
                    help="comma-separated target joints to drive (default: jaw and eyes for non-ARKit targets)")
     s.add_argument("--ridge", type=float, default=1e-6, help="relative Tikhonov weight of the fit")
     s.set_defaults(fn=cmd_adapter_fit)
+    s = asub.add_parser("make", help="make the adapter from a tracker's vocabulary (mediapipe, live-link-face) to a "
+                                     "face model, with nothing but the install: <out>/<ID>.onnx and "
+                                     "<out>/<ID>.manifest.json, ready for PUT /v1/adapters/<ID>")
+    s.add_argument("--source", required=True, help="the tracker's vocabulary: mediapipe or live-link-face "
+                                                   "('adapter vocabulary NAME' lists its names and mapping)")
+    s.add_argument("--target", default="open-head", help="face-model file, or open-head (default)")
+    s.add_argument("--out", required=True, type=Path, metavar="DIR", help="the folder the two files go to")
+    s.add_argument("--id", default=None, help="the adapter's id (default <source>-to-open-head, or "
+                                              "<source>-to-<face model name>)")
+    s.add_argument("--data-dir", type=Path, default=None,
+                   help="also store it in <data-dir>/adapters (a service on that data dir uses it without an upload)")
+    s.set_defaults(fn=cmd_adapter_make)
+    s = asub.add_parser("vocabulary", help="the capture vocabularies; with a name, its names in order and what "
+                                           "each maps to on the open head")
+    s.add_argument("name", nargs="?", default=None, help="mediapipe or live-link-face")
+    s.set_defaults(fn=cmd_adapter_vocabulary)
     s = asub.add_parser("list", help="the adapters in <data-dir>/adapters")
     s.add_argument("--data-dir", type=Path, default=Path("data"))
     s.set_defaults(fn=cmd_adapter_list)
@@ -667,8 +777,9 @@ def _add_bench_commands(sub: argparse._SubParsersAction) -> argparse._SubParsers
     b.add_argument("--streams", type=int, default=1, help="frames batched per call (concurrent streams)")
     b.add_argument("--frames", type=int, default=10, help="timed frames")
     b.add_argument("--warmup", type=int, default=2)
-    b.add_argument("--reference-frames", type=int, default=2,
-                   help="frames of the reference backend timed in the same run for the speed-up (0: skip)")
+    b.add_argument("--reference-frames", type=int, default=0,
+                   help="also time this many frames of the torch reference backend for the speed-up "
+                        "(vs_reference; slow: tens of seconds a frame at 64k Gaussians; default 0: skipped)")
     b.add_argument("--threads", type=int, default=0, help="native threads (0: all)")
     b.add_argument("--sh-degree", type=int, default=3, choices=range(4))
     b.add_argument("--precision", choices=("fp32", "fp16", "bf16"), default="fp16",

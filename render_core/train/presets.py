@@ -53,6 +53,12 @@ class Preset:
     def with_(self, **overrides) -> Preset:
         return replace(self, **overrides)
 
+    def with_gaussians(self, gaussians: int) -> Preset:
+        """The preset scaled to ``gaussians`` initial face Gaussians (``train --gaussians``): mouth Gaussians at
+        most a tenth of them, the densification cap scaled alike."""
+        return replace(self, gaussians=gaussians, mouth=max(2, min(self.mouth, gaussians // 10)),
+                       max_gaussians=max(gaussians, self.max_gaussians * gaussians // self.gaussians))
+
     def to_dict(self) -> dict:
         return asdict(self)
 

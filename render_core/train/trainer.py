@@ -586,6 +586,14 @@ class Trainer:
                                                "build_seconds": round(grid.build_seconds - self._grid_start[1], 3)},
         }
 
+    def dataset_provenance(self) -> dict:
+        """What a trained bundle records of its dataset: the folder's name, frames, size, split, face model and a
+        digest of its files (:func:`dataset_digest`)."""
+        tr = self.dataset.tracking
+        return {"name": self.data_dir.name, "frames": int(tr.frames), "width": int(tr.width),
+                "height": int(tr.height), "train": len(self.train_idx), "test": len(tr.test),
+                "face_model": tr.face_model, "digest": dataset_digest(self.data_dir)}
+
     def final_psnr(self) -> dict:
         """PSNR (full frame, masked target) of the model on up to ``final_eval_frames`` training frames, rendered
         at the full SH degree (the exported avatar's) with the training rasterizer."""
@@ -607,22 +615,48 @@ class Trainer:
         """Export the avatar to ``out_bundle`` (fp16 blendshape storage), evaluate it (``final``: PSNR on training
         frames; the held-out report and contact sheet when the dataset has test frames; the loss curves) and
         write ``summary.json``; returns the summary."""
+        from ..evaluation.report import relative_paths
+
         out_bundle = Path(out_bundle)
         self._prepare_disk()
         summary = self.summary()
         cfg, model = self.preset, self._model
-        avatar = model.to_avatar(provenance={"trained": {"iterations": self.iteration, "preset": cfg.name,
-                                                         "seed": self.seed, "consistency": model.consistency,
-                                                         "dataset": self.data_dir.name}})
+        trained = {"iterations": self.iteration, "preset": cfg.name, "seed": self.seed,
+                   "consistency": model.consistency, "dataset": self.dataset_provenance()}
+        avatar = model.to_avatar(provenance={"trained": trained})
         out_bundle.parent.mkdir(parents=True, exist_ok=True)
-        write_bundle(avatar, out_bundle, precision="fp16")
+        manifest = write_bundle(avatar, out_bundle, precision="fp16")
         summary["bundle"] = str(out_bundle)
         summary["final"] = self.final_psnr()
         summary.update(_report(out_bundle, self.data_dir, self.workdir, len(self.dataset.tracking.test)))
+        if "eval" in summary:  # the held-out figures join the bundle's provenance (same tensors, same created_at)
+            e = summary["eval"]
+            held_out = {"split": "test", "frames": e["frames"],
+                        **{k: None if e[k] is None else round(float(e[k]), 4) for k in ("psnr_head", "psnr", "ssim")}}
+            avatar.provenance = {**manifest["provenance"], "trained": {**trained, "held_out": held_out}}
+            write_bundle(avatar, out_bundle, precision="fp16")
         summary["seconds_total"] = round(time.perf_counter() - self._created, 3)
+        # the file names files relative to the workdir (or by name): it is served to API clients (a job's summary)
         with atomic_path(self.workdir / "summary.json") as tmp:
-            tmp.write_text(json.dumps(summary, indent=2))
+            tmp.write_text(json.dumps(relative_paths(summary, self.workdir), indent=2))
         return summary
+
+
+def dataset_digest(root: str | os.PathLike) -> str:
+    """``"sha256:<hex>"`` over a dataset folder's regular files in sorted relative-path order (each: the UTF-8 path,
+    its byte length and its bytes), so the same files give the same digest wherever the folder is."""
+    import hashlib
+
+    root = Path(root)
+    h = hashlib.sha256(b"blendsplat-dataset-digest-v1\n")
+    for path in sorted((p for p in root.rglob("*") if p.is_file() and not p.is_symlink()),
+                       key=lambda p: p.relative_to(root).as_posix()):
+        rel = path.relative_to(root).as_posix().encode()
+        h.update(len(rel).to_bytes(8, "little") + rel + path.stat().st_size.to_bytes(8, "little"))
+        with open(path, "rb") as f:
+            while chunk := f.read(1 << 20):
+                h.update(chunk)
+    return f"sha256:{h.hexdigest()}"
 
 
 def _report(bundle: Path, data_dir: Path, workdir: Path, held_out: int) -> dict:

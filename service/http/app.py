@@ -25,7 +25,6 @@ from fastapi.responses import JSONResponse
 from fastapi.staticfiles import StaticFiles
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import compile_path
-from swagger_ui_bundle import swagger_ui_path
 
 from blendsplat.v1 import render_pb2 as pb
 
@@ -167,16 +166,19 @@ def _handle_errors(app: FastAPI, engine: Engine) -> None:
 def create_app(engine: Engine, training: Training | None = None) -> FastAPI:
     """The app over ``engine``; with ``training``, also the training jobs' routes (:mod:`service.jobs.api`)."""
     app = FastAPI(title="Blendsplat render service", version="1", docs_url=None, redoc_url=None,
-                  description="Gaussian blendshape head avatars, animated and rendered live. The gRPC service "
-                              "blendsplat.v1.RenderService carries the same messages. Training jobs: upload a "
-                              "tracked video (/v1/uploads), submit a job (/v1/jobs), a worker trains it.")
+                  description="Gaussian blendshape head avatars, animated and rendered live: list them "
+                              "(/v1/avatars), render a frame (/v1/render) or stream frames (the WebSocket "
+                              "/v1/stream). The gRPC service blendsplat.v1.RenderService carries the same messages. "
+                              "Training jobs: upload a tracked video (/v1/uploads), submit a job (/v1/jobs), a "
+                              "worker trains it.")
     app.state.engine = engine
     app.state.training = training
     app.state.problems = {}  # readiness check -> why it fails: a text, or a callable asked then (set by the process)
     app.state.closing = asyncio.Event()  # set by stop_reading_bodies (drain)
     for module in (avatars, render, adapters, ops):
         app.include_router(module.router)
-    app.mount("/static/swagger", StaticFiles(directory=swagger_ui_path), name="swagger-ui")
+    # Swagger UI 5 (it reads OpenAPI 3.1), vendored from the npm package swagger-ui-dist: service/static/swagger/
+    app.mount("/static/swagger", StaticFiles(directory=ops.SWAGGER), name="swagger-ui")
     app.mount("/static/app", StaticFiles(directory=ops.STATIC), name="pages")  # the pages' shared theme.css
     if training is not None:
         for router in TRAINING_ROUTERS:

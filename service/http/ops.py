@@ -17,6 +17,9 @@ from .schemas import Health, Readiness
 
 router = APIRouter(tags=["operations"])
 STATIC = Path(__file__).resolve().parents[1] / "static"
+# Swagger UI 5.x (swagger-ui-dist from npm; VERSION, LICENSE and fetch.sh there): it reads the OpenAPI 3.1 document
+# FastAPI publishes, which Swagger UI 4 cannot ("Unable to render this definition")
+SWAGGER = STATIC / "swagger"
 PAGE = {200: {"content": {"text/html": {"schema": {"type": "string"}}}, "description": "the page"}}
 
 
@@ -56,7 +59,7 @@ async def favicon() -> Response:
 
 @router.get("/docs", include_in_schema=False)
 async def api_docs() -> Response:
-    """Swagger UI from this server's own copy (swagger-ui-bundle): the docs work without internet."""
+    """Swagger UI from this server's own copy (:data:`SWAGGER`): the docs work without internet."""
     return get_swagger_ui_html(openapi_url="/openapi.json", title="Blendsplat API",
                                swagger_js_url="/static/swagger/swagger-ui-bundle.js",
                                swagger_css_url="/static/swagger/swagger-ui.css",

@@ -27,10 +27,15 @@ class AvatarOut(BaseModel):
     file_bytes: int
     memory_bytes: int = Field(description="resident in this replica's cache (0 when not loaded)")
     digest: str = Field(description="sha256 of the bundle's content")
+    trained: bool = Field(description="learned from a video by the training pipeline (its provenance records the "
+                                      "dataset, preset and iterations)")
+    psnr_head: float | None = Field(description="a trained avatar's head-mask PSNR on its dataset's held-out "
+                                                "frames, dB; null when it has none")
 
     @classmethod
     def of(cls, info: pb.AvatarInfo) -> AvatarOut:
-        return cls(**{name: getattr(info, name) for name in cls.model_fields})
+        return cls(**{name: getattr(info, name) if name != "psnr_head" or info.HasField(name) else None
+                      for name in cls.model_fields})
 
 
 class AvatarList(BaseModel):
@@ -39,7 +44,8 @@ class AvatarList(BaseModel):
 
 # ------------------------------------------------------------------------------------------------------ adapters
 class AdapterSource(BaseModel):
-    convention: str = Field(description="the source's naming: arkit-52, flame or custom")
+    convention: str = Field(description="the source's naming: arkit-52, flame, mediapipe-52, live-link-face or "
+                                        "custom")
     face_model: str = Field(description="the tracker's face model, or empty")
     names: list[str] = Field(description="the model's inputs in order: expression names, and <joint>.x/.y/.z for a "
                                          "source joint's axis-angle components")

@@ -10,7 +10,6 @@ connection, HTTP or timeout error, 130 waiting interrupted by Ctrl-C (the job go
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import math
 import os
@@ -31,6 +30,7 @@ from .client import (
     ClientError,
     JobsClient,
     WaitTimeout,
+    check_dataset,
     pack_dataset,
 )
 from .display import UploadBar, Watch, summary
@@ -46,8 +46,9 @@ def _client(args: argparse.Namespace) -> JobsClient:
 
 
 def _print_json(obj: Any) -> None:
-    sys.stdout.write(json.dumps(obj, indent=2) + "\n")
-    sys.stdout.flush()
+    from render_core.tools.cli import emit
+
+    emit(obj)  # strict JSON, as every command's
 
 
 def _show(client: JobsClient, job: dict[str, Any], as_json: bool) -> None:
@@ -106,16 +107,22 @@ def cmd_submit(args: argparse.Namespace) -> int:
         if getattr(args, name) is not None:
             spec[name] = getattr(args, name)
     with _client(args) as client, tempfile.TemporaryDirectory(prefix="blendsplat-jobs-") as tmp:
+        # What is quick first (the argument, the dataset's manifest), then the server (reachable, the key
+        # accepted), and only then the slow part: packing a folder (seconds to minutes) and the upload.
+        if source.is_dir():
+            check_dataset(source)
+        elif source.is_file():
+            if not source.name.lower().endswith(ARCHIVE_SUFFIXES):
+                raise ClientError(f"{source} is neither a dataset folder nor a .tar.gz, .tar or .zip archive")
+        else:
+            raise ClientError(f"{source}: no such dataset folder or archive")
+        client.check()
         if source.is_dir():
             archive = Path(tmp) / f"{source.resolve().name or 'dataset'}.tar.gz"
             print(f"packing {source} ...", file=sys.stderr, flush=True)
             pack_dataset(source, archive)
-        elif source.is_file():
-            if not source.name.lower().endswith(ARCHIVE_SUFFIXES):
-                raise ClientError(f"{source} is neither a dataset folder nor a .tar.gz, .tar or .zip archive")
-            archive = source
         else:
-            raise ClientError(f"{source}: no such dataset folder or archive")
+            archive = source
         bar = UploadBar(archive.stat().st_size, archive.name)
         try:
             upload = client.upload(archive, progress=bar)

@@ -230,6 +230,11 @@ class JobsClient:
             time.sleep(0.5)
             return self._json(self._request("POST", "/v1/jobs", json=spec, headers=headers))
 
+    def check(self) -> None:
+        """That the server answers the jobs API and accepts the key (``GET /v1/jobs?limit=1``): what a command
+        checks before slow local work (packing a dataset). ConnectionFailed or ApiError (401, 403) otherwise."""
+        self.list_jobs(limit=1)
+
     def list_jobs(self, state: str | None = None, limit: int = 50, cursor: str | None = None) -> dict[str, Any]:
         """``GET /v1/jobs``: one page, newest first: ``{"jobs": [...], "next_cursor"}``."""
         params: dict[str, Any] = {"limit": limit}
@@ -363,10 +368,10 @@ class JobsClient:
 
 
 # ---------------------------------------------------------------------------------------------- the commands
-def pack_dataset(folder: Path, out: Path) -> None:
-    """Pack a tracked-video dataset folder (docs/tracked-video-format.md) into a .tar.gz on disk, the dataset in
-    one top-level folder. Checks it first (the manifest and tracking fully, the frame and mask files for
-    existence; the server decodes every one): ClientError naming the problem."""
+def check_dataset(folder: Path) -> None:
+    """Check a tracked-video dataset folder (docs/tracked-video-format.md) before it is packed: the manifest and
+    tracking fully, the frame and mask files for existence (the server decodes every one); ClientError naming the
+    problem."""
     from render_core.data.portable import read_dataset
     from render_core.errors import DatasetError
 
@@ -377,6 +382,12 @@ def pack_dataset(folder: Path, out: Path) -> None:
         read_dataset(folder)
     except DatasetError as exc:
         raise ClientError(f"{folder} is not a valid tracked-video dataset: {exc}") from None
+
+
+def pack_dataset(folder: Path, out: Path) -> None:
+    """Pack a tracked-video dataset folder into a .tar.gz on disk, the dataset in one top-level folder; checked
+    first (:func:`check_dataset`)."""
+    check_dataset(folder)
     with tarfile.open(out, "w:gz", compresslevel=3, dereference=True) as tar:  # frames are PNG: little to gain
         tar.add(folder, arcname=folder.resolve().name or "dataset",
                 filter=lambda m: m if (m.isfile() or m.isdir()) else None)

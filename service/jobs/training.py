@@ -28,6 +28,7 @@ in its work folder ``<settings.work_dir>/<job id>/``, written by the worker (:mo
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import secrets
@@ -166,15 +167,48 @@ class Training:
     def artefact(self, job_id: str, name: str) -> tuple[Path, str]:
         """The file of a job's artefact and its media type; NotFound for an unknown job or name, or a file not
         (yet) written. Only the fixed file names of :data:`ARTEFACTS`, directly in the job's work folder."""
-        self.jobs.get(job_id)  # NotFound: an id the database does not know never becomes a path
+        job = self.jobs.get(job_id)  # NotFound: an id the database does not know never becomes a path
         if name not in ARTEFACTS:
             raise NotFound(f"no artefact {name!r}; a job's artefacts are {', '.join(ARTEFACTS)}", field="name")
         file, media_type = ARTEFACTS[name]
         folder = self.work_folder(job_id)
         if not self._servable(folder, file):
-            when = "as it trains" if name in ("preview", "log") else "when training ends"
-            raise NotFound(f"job {job_id} has no {name} yet ({file} is written by the worker {when})", field="name")
+            raise NotFound(self._why_missing(job, name, file, folder), field="name")
         return folder / file, media_type
+
+    def _why_missing(self, job: Job, name: str, file: str, folder: Path) -> str:
+        """The 404 of a job's artefact that is not there, with the reason: not yet (queued, running), never
+        (cancelled, failed, no held-out frames, figures the worker could not draw) or no longer (work folder gone)."""
+        during = name in ("preview", "truth", "log")
+        if job.state in (JobState.QUEUED, JobState.RUNNING):
+            when = "as it trains" if during else "when training ends"
+            return f"job {job.id} has no {name} yet ({file} is written by the worker {when})"
+        return f"job {job.id} has no {name}: {self._why_never(job, name, file, folder, during)}"
+
+    @staticmethod
+    def _why_never(job: Job, name: str, file: str, folder: Path, during: bool) -> str:
+        if not folder.is_dir():
+            return ("its work folder is gone (removed by retention, work_retention_hours after the job finished, or "
+                    "with the upload it trained on)")
+        if job.state is JobState.CANCELLED and not during:
+            return f"the job was cancelled before training ended ({file} is written when training finishes)"
+        if job.state is JobState.FAILED and not during:
+            return f"the job failed before training ended ({job.error or 'no error recorded'})"
+        if job.state is JobState.SUCCEEDED and not during:
+            summary = _read_json(folder / "summary.json")
+            if name == "curves":
+                skipped = (summary.get("plots") or {}).get("skipped")
+                if skipped:
+                    return f"the worker could not draw the training curves ({skipped})"
+            elif name in ("report", "contact-sheet"):
+                if summary and not summary.get("eval"):
+                    return ("the dataset has no held-out (test) frames: the report and the contact sheet evaluate "
+                            "the avatar on them")
+                if name == "contact-sheet":
+                    skipped = (_read_json(folder / "report.json").get("plots") or {}).get("skipped")
+                    if skipped:
+                        return f"the worker could not draw it ({skipped})"
+        return f"the job {job.state.value} without writing {file}"
 
     def _servable(self, folder: Path, file: str) -> bool:
         """A regular file directly in the job's work folder (no symbolic link on the way is followed)."""
@@ -304,3 +338,12 @@ class Training:
                     shutil.rmtree(p, ignore_errors=True)
                     count += 1
         return count
+
+
+def _read_json(path: Path) -> dict:
+    """A work folder's JSON file as a dict; {} when it is missing or unreadable (an explanation, not a check)."""
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return {}
+    return data if isinstance(data, dict) else {}
