@@ -65,3 +65,36 @@ def test_shell_examples_write_only_under_ignored_folders():
         assert "/scratch/" in rules and "/data/" in rules
     else:
         assert ignored.stdout.split() == ["scratch/x", "data/x"], ignored.stderr
+
+
+def test_the_using_it_commands_run_verbatim_and_do_what_they_say(tmp_path):
+    """The first shell block of "Using it", run as written from a checkout's root (the venv's commands, a scratch
+    folder): every command exits 0, `bundle inspect` and the benchmarks print strict JSON, the bundle validates
+    and the driving file renders one PNG per line."""
+    import json
+    import subprocess
+    import sys
+
+    text = README.read_text(encoding="utf-8")
+    block = re.search(r"```bash\n(.*?)```", text.split("## Using it", 1)[1], re.S).group(1)
+    (tmp_path / ".venv").symlink_to(Path(sys.executable).parents[1])
+    run = subprocess.run(["bash", "-e", "-o", "pipefail", "-c", block], cwd=tmp_path, capture_output=True,
+                         text=True, timeout=600)
+    assert run.returncode == 0, run.stderr[-2000:]
+
+    def strict(constant):
+        raise ValueError(f"non-standard JSON constant {constant}")
+
+    decoder, docs, rest = json.JSONDecoder(parse_constant=strict), [], run.stdout.strip()
+    while rest:
+        doc, end = decoder.raw_decode(rest)
+        docs.append(doc)
+        rest = rest[end:].strip()
+    manifest = next(d for d in docs if "expression_names" in d)
+    assert len(manifest["expression_names"]) == 50 and manifest["precision"] == "fp16"
+    benches = [d for d in docs if d.get("benchmark") == "render"]
+    assert [b["backend"] for b in benches] == ["native", "reference"] and all(b["fps"] > 0 for b in benches)
+    frames = sorted((tmp_path / "scratch" / "frames").glob("*.png"))
+    assert len(frames) == 3, frames
+    assert subprocess.run([str(tmp_path / ".venv" / "bin" / "blendsplat"), "bundle", "validate",
+                           str(tmp_path / "scratch" / "head.bundle")], capture_output=True).returncode == 0
