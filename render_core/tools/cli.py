@@ -523,6 +523,34 @@ def cmd_data_convert(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_track(args: argparse.Namespace) -> int:
+    """A video -> a tracked dataset (render_core/tracking/track.py); progress on stderr, one JSON line with --json."""
+    from ..tracking.track import stderr_progress, track_video
+
+    report = track_video(args.video, args.out, fps=args.fps, size=args.size, crop=args.crop,
+                         max_seconds=args.max_seconds, progress=stderr_progress)
+    if args.json:
+        _emit(report, indent=None)
+    else:
+        log.info("tracked %d frames (%d dropped) into %s; reprojection %.2f px", report["frames_kept"],
+                 report["frames_dropped"]["count"], args.out, report["reprojection_px"])
+    return 0
+
+
+def _add_track_command(sub: argparse._SubParsersAction) -> None:
+    s = sub.add_parser("track", help="track a video with the built-in CPU face tracker into a dataset in the "
+                                     "portable format (the open head fitted; head masks; the last 15%% held out)")
+    s.add_argument("video", type=Path, help="MP4, MOV, WebM or MKV")
+    s.add_argument("--out", type=Path, required=True, help="the dataset folder to write (must not exist or be empty)")
+    s.add_argument("--fps", type=float, default=None, help="output frame rate (default: the video's)")
+    s.add_argument("--size", type=int, default=512, help="the square crop's side in pixels (default 512)")
+    s.add_argument("--crop", choices=("auto", "none"), default="auto",
+                   help="auto: one fixed window around the head; none: the whole frame fitted in")
+    s.add_argument("--max-seconds", type=float, default=None, help="use only the video's first seconds")
+    s.add_argument("--json", action="store_true", help="one JSON line on stdout")
+    s.set_defaults(fn=cmd_track)
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The ``blendsplat`` parser of render_core's commands, one helper per command group. ``service.cli`` adds its
     own through ``p.commands``, ``p.bench_commands``, ``p.facemodel_commands`` and ``p.data_commands``."""
@@ -536,6 +564,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_train_command(sub)
     _add_eval_command(sub)
     _add_render_command(sub)
+    _add_track_command(sub)
     bsub = _add_bench_commands(sub)
     _add_demo_command(sub)
     # Where other packages (service.cli) add their commands.

@@ -11,7 +11,12 @@ LiteRT (:mod:`.runner`) from the files in ``models/`` (extracted from the mediap
 Apache-2.0, checked against their sha256), with our own pre- and post-processing; the largest face tracked from frame
 to frame, re-detected when lost, short gaps interpolated and long ones reported.
 
-Stage 3, fitting the face model to the landmarks (cameras, expressions, pose) and writing the dataset, comes later.
+Stage 3, fitting (:mod:`.correspond`, :mod:`.fit`): the open head fitted to the landmarks through a fixed, shipped
+landmark-to-surface correspondence - focal length on keyframes, then per frame head pose and the 52 expressions
+(jaw = jawOpen, gaze = eyeLook*, as ``data synth`` writes them), batched Gauss-Newton in torch. Identity: the open
+head has no shape basis, so its template is kept (the tracked-video format has no identity offsets yet). Stage 4
+(:mod:`.track`, ``blendsplat track``): the dataset in the tracked-video format, head mattes as masks, the last 15%
+held out, and a contact sheet of the fitted points.
 
 Timings, 512x512 RGB, one CPU core (LiteRT and torch each on one thread), on the 2-core development machine while
 other work ran (median of 60 runs; the model alone in brackets):

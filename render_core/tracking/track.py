@@ -1,0 +1,185 @@
+"""Stage 4 and the whole tracker: a video in, a tracked dataset out (``blendsplat track VIDEO --out DIR``).
+
+1. Decode (:mod:`.video`; ``max_seconds``: only the frames before that time are used) and find the face's landmarks
+   in every frame (:mod:`.landmarks`): on the training crop itself for ``crop="none"`` (the whole frame fitted into
+   ``size`` x ``size``), on the full frame for ``auto`` (one fixed head window for the video, :mod:`.crop`), the
+   landmarks then mapped into the crop.
+2. Fit (:mod:`.fit`) the kept frames (found or interpolated; dropped frames are left out of the dataset, with their
+   reasons in the report), the principal point at the image of the frame's centre.
+3. Decode again and write (:func:`~render_core.data.portable.write_dataset`, PNG): the crops, the head mattes
+   (:mod:`.segment`, selfie segmentation limited to the head) as masks, and ``tracking.npz`` exactly as ``data
+   synth`` writes it for the open head (joints at rest, eyelids zero, no identity shape; jaw = ``jawOpen``, gaze =
+   ``eyeLook*``), the last 15% of the frames held out as the test set. Then ``contact_sheet.png`` in the folder (not
+   part of the format, which ignores other files): a few frames with the detected points (red) and the fitted
+   model's projected points (green).
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import TrackingError
+from .crop import crop_frame, crop_windows, whole_frame
+from .landmarks import track_landmarks
+from .video import VideoReader
+
+CROPS = ("auto", "none")
+SHEET_FRAMES = 6
+
+
+def _frames(reader: VideoReader, max_seconds: float | None) -> Iterator:
+    for frame in reader:
+        if max_seconds is not None and frame.time >= max_seconds:
+            return
+        yield frame
+
+
+def _dots(img: np.ndarray, points: np.ndarray, colour: tuple[int, int, int], r: int = 1) -> None:
+    h, w = img.shape[:2]
+    for x, y in np.round(points[:, :2] - 0.5).astype(np.int64):
+        img[max(0, y - r):min(h, y + r + 1), max(0, x - r):min(w, x + r + 1)] = colour
+
+
+def _sheet(tiles: list[np.ndarray], path: Path) -> Path:
+    from ..media.files import write_image
+
+    cols = min(3, len(tiles))
+    rows = -(-len(tiles) // cols)
+    h, w = tiles[0].shape[:2]
+    sheet = np.zeros((rows * h, cols * w, 3), np.uint8)
+    for k, tile in enumerate(tiles):
+        r, c = divmod(k, cols)
+        sheet[r * h:(r + 1) * h, c * w:(c + 1) * w] = tile
+    write_image(path, sheet)
+    return path
+
+
+def track_video(video: str | os.PathLike, out: str | os.PathLike, *, fps: float | None = None, size: int = 512,
+                crop: str = "auto", max_seconds: float | None = None, threads: int | None = 1,
+                progress: Callable[[str], None] | None = None) -> dict:
+    """Track ``video`` into the dataset folder ``out`` (module docstring); returns the report: frames_kept,
+    frames_dropped (count and runs with reasons), reprojection_px (median over the kept frames), focal, timing_ms."""
+    from ..data.generate import held_out_count
+    from ..data.portable import Tracking, write_dataset
+    from ..facemodel.open_head import open_head
+    from .fit import fit_frames
+    from .segment import head_matte, person_probability
+
+    if crop not in CROPS:
+        raise TrackingError(f"unknown crop {crop!r}; one of {', '.join(CROPS)}", field="crop")
+    say = progress or (lambda s: None)
+    out = Path(out)
+    timing = {"decode": 0.0, "landmarks": 0.0, "fit": 0.0, "write": 0.0}
+    reader = VideoReader(video, fps=fps)
+    W, H = reader.info.width, reader.info.height
+    window = whole_frame(W, H, size, size)
+
+    def inputs() -> Iterator[np.ndarray]:
+        it = _frames(reader, max_seconds)
+        while True:
+            t0 = time.perf_counter()
+            frame = next(it, None)
+            rgb = None if frame is None else (crop_frame(frame.rgb, window) if crop == "none" else frame.rgb)
+            timing["decode"] += time.perf_counter() - t0
+            if rgb is None:
+                return
+            yield rgb
+
+    say(f"landmarks: {video}")
+    t0 = time.perf_counter()
+    track = track_landmarks(inputs(), threads=threads)
+    timing["landmarks"] = time.perf_counter() - t0 - timing["decode"]
+    landmarks, iris = track.landmarks, track.iris
+    if crop == "auto":
+        window = crop_windows(track.boxes, W, H, size, size, "fixed")[0]
+        landmarks, iris = window.to_crop(landmarks), window.to_crop(iris)
+    kept = track.kept
+    if not len(kept):
+        raise TrackingError("no frame kept", field="face")
+    say(f"fit: {len(kept)} frames")
+    t0 = time.perf_counter()
+    model = open_head()
+    principal = tuple(window.to_crop(np.array([[W / 2, H / 2]]))[0])
+    fit = fit_frames(model, landmarks[kept], iris[kept], size, size, principal=principal, threads=threads)
+    timing["fit"] = time.perf_counter() - t0
+
+    n = len(kept)
+    n_test = held_out_count(n) if n >= 2 else 0
+    tracking = Tracking(
+        face_model=model.name, expression_names=list(model.expression_names), joint_names=list(model.joint_names),
+        expression=fit.expression.astype(np.float32), joint_rotations=np.zeros((n, model.num_joints, 3), np.float32),
+        eyelids=np.zeros((n, 2), np.float32), K=np.broadcast_to(fit.K, (n, 3, 3)).astype(np.float32),
+        R=fit.R.astype(np.float32), t=fit.t.astype(np.float32), shape=np.zeros(0, np.float32),
+        train=np.arange(n - n_test), test=np.arange(n - n_test, n), width=size, height=size,
+        fps=float(reader.fps))
+    sheet_at = set(np.unique(np.round(np.linspace(0, n - 1, min(SHEET_FRAMES, n))).astype(int)).tolist())
+    tiles: list[np.ndarray] = []
+    projected = _projected(model, fit)
+    masks: list[np.ndarray] = []
+    say(f"write: {out}")
+    t_write = time.perf_counter()
+    decode_before = timing["decode"]
+    where = {int(f): k for k, f in enumerate(kept)}
+
+    def frames_out() -> Iterator[np.ndarray]:
+        for i, frame in enumerate(_frames(reader, max_seconds)):
+            k = where.get(i)
+            if k is None:
+                continue
+            rgb = crop_frame(frame.rgb, window)
+            masks.append(np.round(255 * head_matte(person_probability(rgb), landmarks[i])).astype(np.uint8))
+            if k in sheet_at:
+                tile = rgb.copy()
+                _dots(tile, landmarks[i, track_points(fit)], (230, 40, 40))
+                _dots(tile, projected[k], (40, 230, 40))
+                tiles.append(tile)
+            yield rgb
+
+    def masks_out() -> Iterator[np.ndarray]:
+        while masks:
+            yield masks.pop(0)
+
+    write_dataset(out, frames_out(), masks_out(), tracking, image_format="png")
+    if tiles:
+        _sheet(tiles, out / "contact_sheet.png")
+    timing["write"] = time.perf_counter() - t_write - (timing["decode"] - decode_before)
+    dropped = len(track.status) - n
+    return {"out": str(out), "frames_kept": n, "frames_dropped": {"count": dropped, "runs": track.report()[
+        "dropped_runs"]}, "interpolated": track.status.count("interpolated"),
+        "reprojection_px": round(float(np.median(fit.reprojection_px)), 3), "focal_px": round(float(fit.K[0, 0]), 2),
+        "size": size, "crop": crop, "fps": float(reader.fps), "train": n - n_test, "test": n_test,
+        "timing_ms": {k: round(1000 * v, 1) for k, v in timing.items()},
+        "frames_per_second": {"landmarks_and_fit": round(len(track.status) / max(timing["landmarks"]
+                                                                                 + timing["fit"], 1e-9), 1)}}
+
+
+def track_points(fit) -> np.ndarray:
+    """The MediaPipe indices of the fitted points that are face-mesh landmarks (irises excluded)."""
+    from .correspond import load_correspondence
+
+    idx = load_correspondence().landmarks
+    return idx[idx < 468]
+
+
+def _projected(model, fit) -> np.ndarray:
+    """The fitted model's face-mesh points (irises excluded) projected in every kept frame ``[N, L', 2]``."""
+    import torch
+
+    from .fit import Problem
+
+    problem = Problem(model)
+    X = problem.T[None] + torch.einsum("nk,klc->nlc", torch.from_numpy(fit.expression), problem.B)
+    Xc = X.numpy() @ np.swapaxes(fit.R, 1, 2) + fit.t[:, None]
+    uv = Xc @ fit.K.T
+    uv = uv[..., :2] / uv[..., 2:3]
+    return uv[:, problem.corr.landmarks < 468]
+
+
+def stderr_progress(message: str) -> None:
+    print(f"track: {message}", file=sys.stderr, flush=True)
