@@ -25,6 +25,7 @@ import json
 import logging
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -41,12 +42,17 @@ from render_core.deform import Frame
 from render_core.rotation import axis_angle_to_matrix
 
 from . import params
-from .errors import InvalidArgument, NotFound, some
+from .errors import InvalidArgument, NotFound, PermissionDenied, some
 
 log = logging.getLogger(__name__)
 
 MAX_ADAPTER_BYTES = 16 << 20  # an adapter's ONNX model
 MAX_MANIFEST_BYTES = 1 << 20
+MayUse = Callable[[str | None], bool]  # may the caller use an adapter of this tenant (None: the deployment's)?
+
+
+def _anyone(tenant: str | None) -> bool:
+    return True
 
 
 @dataclass
@@ -123,9 +129,9 @@ class Adapters:
     def _record(self, adapter_id: str) -> tuple[dict[str, Any], AdapterManifest]:
         files.check_adapter_id(adapter_id, field="adapter")
         if not files.paths(self.root, adapter_id)[1].is_file():
-            known = files.adapter_ids(self.root)
-            raise NotFound(f"no adapter {adapter_id!r}" + (f" (adapters: {some(known)})" if known else
-                                                            " (none is stored)"), field="adapter")
+            # never a listing of the store: it would show other tenants' ids (GET /v1/adapters lists the caller's)
+            raise NotFound(f"no adapter {adapter_id!r} (GET /v1/adapters lists the adapters this key may use)",
+                           field="adapter")
         return files.read_record(self.root, adapter_id)
 
     def load(self, adapter_id: str) -> Loaded:
@@ -145,17 +151,20 @@ class Adapters:
         return loaded
 
     # --------------------------------------------------------------------------------------------- sessions
-    def pick(self, avatar: Avatar, source_names: list[str]) -> str:
-        """The stored adapter that maps ``source_names`` to ``avatar``'s face model: its source names include them,
-        its target is the avatar's face model with names the avatar has; an exact match of the names first, then
-        the fewest extra inputs, then the id."""
+    def pick(self, avatar: Avatar, source_names: list[str], may_use: MayUse = _anyone) -> str:
+        """The stored adapter that maps ``source_names`` to ``avatar``'s face model, among those ``may_use`` allows
+        (the caller's visibility rule on the adapter's owning tenant): its source names include them, its target is
+        the avatar's face model with names the avatar has; an exact match of the names first, then the fewest
+        extra inputs, then the id."""
         wanted = set(source_names)
         found = []
         for adapter_id in files.adapter_ids(self.root):
             try:
-                _, m = files.read_record(self.root, adapter_id)
+                record, m = files.read_record(self.root, adapter_id)
             except AdapterError:
                 continue
+            if not may_use(record.get("tenant")):
+                continue  # another tenant's: never picked, never named
             expressions = {n for n in m.source_names if joint_component(n) is None}
             if wanted <= expressions and _fits(m, avatar) is None:
                 found.append((len(expressions - wanted), adapter_id))
@@ -166,13 +175,16 @@ class Adapters:
                                   field="source_names")
         return min(found)[1]
 
-    def for_session(self, avatar: Avatar, config: pb.SessionConfig, order: list[str]) -> SessionAdapter | None:
-        """What ``open`` asked for: an adapter (named, or picked from ``source_names``), smoothing, or neither."""
+    def for_session(self, avatar: Avatar, config: pb.SessionConfig, order: list[str],
+                    may_use: MayUse = _anyone) -> SessionAdapter | None:
+        """What ``open`` asked for: an adapter (named, or picked from ``source_names``), smoothing, or neither.
+        ``may_use``: whether the caller may use an adapter of a tenant (None: the deployment's); a named adapter it
+        may not use is PermissionDenied, and :meth:`pick` never chooses one."""
         smoothing = _smoothing(config) if config.HasField("smoothing") else None
         source_names = list(config.source_names)
         adapter_id = config.adapter
         if not adapter_id and source_names and not set(source_names) <= set(avatar.expression_names):
-            adapter_id = self.pick(avatar, source_names)
+            adapter_id = self.pick(avatar, source_names, may_use)
         if not adapter_id:
             if not source_names and smoothing is None:
                 return None
@@ -182,6 +194,8 @@ class Adapters:
             raise InvalidArgument("with an adapter the coefficients' order is source_names, not expression_names",
                                   field="expression_names")
         loaded = self.load(adapter_id)
+        if not may_use(loaded.record.get("tenant")):  # checked on the record loaded, whatever checked it before
+            raise PermissionDenied(f"adapter {adapter_id!r} belongs to another tenant", field="adapter")
         problem = _fits(loaded.manifest, avatar)
         if problem is not None:
             raise InvalidArgument(f"adapter {adapter_id!r} does not fit this avatar: {problem}", field="adapter")

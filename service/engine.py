@@ -60,7 +60,7 @@ from . import params
 from .access.auth import TRUSTED, Access, Principal
 from .access.limits import no_release
 from .cache import AvatarCache, Loaded
-from .errors import InvalidArgument, NotFound, ResourceExhausted, ServiceError, Unavailable, to_status
+from .errors import InvalidArgument, NotFound, ResourceExhausted, ServiceError, Unavailable, hide_paths, to_status
 from .intake import Spooled, UploadIntake
 from .metrics import STAGES, Metrics
 from .settings import Settings
@@ -121,6 +121,7 @@ class Session:
         s = engine.settings
         self.engine, self.entry, self.transport, self.principal = engine, entry, transport, principal
         self.id = uuid.uuid4().hex
+        self.opened = time.monotonic()  # max_stream_seconds counts from here
         avatar = entry.avatar
         self.out = params.output(config.width, config.height, config.codec, config.quality, s.max_size)
         if config.max_in_flight > 16:
@@ -131,7 +132,8 @@ class Session:
         self.cost = params.check_cost(params.frame_cost(avatar, self.camera), s.max_frame_splat_pixels, self.out,
                                       "camera" if config.HasField("camera") else "width")
         self.background = params.background(config.background if config.HasField("background") else None)
-        self.adapter = engine.adapters.for_session(avatar, config, self.order)  # retargeting, smoothing (or None)
+        self.adapter = engine.adapters.for_session(avatar, config, self.order,  # retargeting, smoothing (or None)
+                                                   principal.may_use_adapter)
         try:
             self.encoder: Encoder = make_encoder(self.out.codec, self.out.width, self.out.height, config.quality,
                                                  config.fps_hint or 30.0)
@@ -290,6 +292,7 @@ class Engine:
         out, every call is trusted: :meth:`Access.trusted`, for tests and tools); ``store``: the bundle store
         (default: a store of ``settings.bundle_dir``)."""
         self.settings = settings
+        hide_paths(settings.data_dir)  # no server path in client-facing text (service/errors.py, redact)
         self.metrics = metrics or Metrics()
         self.store = store or BundleStore(settings.bundle_dir)
         # Render threads: the setting, else every CPU this process may use (not OpenMP's current default, which
@@ -307,6 +310,7 @@ class Engine:
         self._busy = False
         self._vclock = 0.0  # the render time charged to the session served last (fair share's "now")
         self._scheduler: asyncio.Task | None = None
+        self._guard: asyncio.Task | None = None  # ends the streams of revoked keys, and too long ones
         from .adapters import Adapters
 
         self.adapters = Adapters(settings.data_dir / "adapters")  # retargeting adapters (issue 19)
@@ -315,6 +319,26 @@ class Engine:
     async def start(self) -> None:
         self.store.ensure()
         self._scheduler = asyncio.create_task(self._schedule(), name="render-scheduler")
+        self._guard = asyncio.create_task(self._guard_streams(), name="stream-guard")
+
+    async def _guard_streams(self) -> None:
+        """Every ``stream_key_check_seconds``: the streams of a key revoked since they opened end with
+        UNAUTHENTICATED (the key database is asked, not the cache: :meth:`Access.revoked`), and those open longer
+        than ``max_stream_seconds`` end with UNAVAILABLE (the client opens a new one)."""
+        s = self.settings
+        while True:
+            await asyncio.sleep(s.stream_key_check_seconds)
+            open_now = [x for x in self.sessions.values() if not x.closed]
+            if not open_now:
+                continue
+            revoked = await asyncio.to_thread(self.access.revoked, {x.principal.key_id for x in open_now})
+            now = time.monotonic()
+            for session in open_now:
+                if session.principal.key_id in revoked:
+                    session.finish(pb.UNAUTHENTICATED, "the API key of this stream was revoked")
+                elif now - session.opened > s.max_stream_seconds:
+                    session.finish(pb.UNAVAILABLE, f"the stream reached its maximum duration ({s.max_stream_seconds:g} "
+                                                   "s, setting max_stream_seconds); open a new one")
 
     def readiness(self) -> dict[str, bool]:
         """What readiness waits for, check by check."""
@@ -363,6 +387,8 @@ class Engine:
     async def close(self) -> None:
         if self._scheduler is not None:
             self._scheduler.cancel()
+        if self._guard is not None:
+            self._guard.cancel()
         self._pool.shutdown(wait=True, cancel_futures=True)
 
     # --------------------------------------------------------------------------------------------- sessions
@@ -602,7 +628,7 @@ class Engine:
     # An adapter without a tenant is the deployment's: every key may use it, only admin keys change it.
     def list_adapters(self, principal: Principal = TRUSTED) -> list[dict[str, Any]]:
         """The retargeting adapters ``principal`` may use (its tenant's and the deployment's; admin keys: all)."""
-        return [a for a in self.adapters.list() if principal.may_read(a.get("tenant"), a.get("tenant") is None)]
+        return [a for a in self.adapters.list() if principal.may_use_adapter(a.get("tenant"))]
 
     def adapter_info(self, adapter_id: str, principal: Principal = TRUSTED) -> dict[str, Any]:
         """One adapter's record: manifest, owner, size, digest (NotFound; PermissionDenied: another tenant's)."""

@@ -8,7 +8,9 @@ the HTTP transport's answer: the status, the one JSON error body, and the header
 from __future__ import annotations
 
 import logging
+import os
 import uuid
+from pathlib import Path
 from typing import Any
 
 import grpc
@@ -23,6 +25,34 @@ MAX_MESSAGE_CHARS = 1000
 MAX_FIELD_CHARS = 120
 SOME_NAMES = 5
 log = logging.getLogger(__name__)
+
+
+# Server paths never reach a client: every folder registered here (the data folder: the bundle store, uploads, work
+# folders, adapters, face models all lie in it) is cut from client-facing text, leaving relative names
+# (``bundles/x.bundle``). :func:`to_status` (so every HTTP, gRPC and WebSocket error), /readyz's reasons, a job's
+# recorded error and its JSON artefacts go through :func:`redact`. The service and the worker register their
+# settings' data folder at start (:func:`hide_paths`).
+_HIDDEN: set[str] = set()
+
+
+def hide_paths(*roots: str | os.PathLike) -> None:
+    """Register folders whose absolute paths :func:`redact` removes (as given, absolute and resolved)."""
+    for root in roots:
+        for form in (Path(root).absolute(), Path(root).resolve()):
+            text = str(form).rstrip(os.sep)
+            if len(text) > 1:  # never "/"
+                _HIDDEN.add(text)
+
+
+def redact(text: str) -> str:
+    """``text`` with every registered folder cut: ``<root>/a/b`` -> ``a/b``, the folder itself -> ``the data folder``
+    (the longest first, so a folder inside another is cut whole)."""
+    if not isinstance(text, str) or not _HIDDEN:
+        return text
+    for root in sorted(_HIDDEN, key=len, reverse=True):
+        if root in text:
+            text = text.replace(root + os.sep, "").replace(root, "the data folder")
+    return text
 
 
 def some(names, limit: int = SOME_NAMES) -> str:
@@ -116,8 +146,8 @@ def to_status(exc: BaseException, frame_index: int = 0) -> pb.Status:
     allocation refused) is RESOURCE_EXHAUSTED. Message and field are bounded (:func:`bounded`)."""
     if isinstance(exc, ServiceError | BlendsplatError):
         code = exc.code if isinstance(exc, ServiceError) else pb.INVALID_ARGUMENT  # render_core: the client's input
-        return pb.Status(code=code, message=bounded(exc.detail), field=bounded(exc.field or "", MAX_FIELD_CHARS),
-                         frame_index=frame_index)
+        return pb.Status(code=code, message=bounded(redact(exc.detail)),
+                         field=bounded(redact(exc.field or ""), MAX_FIELD_CHARS), frame_index=frame_index)
     if isinstance(exc, MemoryError):
         return pb.Status(code=pb.RESOURCE_EXHAUSTED, message="not enough memory for this request",
                          frame_index=frame_index)

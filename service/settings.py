@@ -92,6 +92,13 @@ class Settings(BaseSettings):
     redis_url: str | None = Field(
         None, description="Redis (redis://[:password@]host:6379/0, rediss:// for TLS) holding the per-key limits, "
                           "so every replica counts against the same ones; unset: each replica counts its own")
+    stream_key_check_seconds: float = Field(
+        5.0, gt=0, le=60, description="how often an open stream (gRPC, WebSocket, job events) checks its key again "
+                                      "in the key database: a revoked key's streams end within about this long "
+                                      "(UNAUTHENTICATED)")
+    max_stream_seconds: float = Field(
+        3600.0, gt=0, description="a render stream (gRPC, WebSocket) ends after this long with UNAVAILABLE (the "
+                                  "client opens a new one); job event streams have events_max_seconds")
     key_uploads_per_hour: int = Field(20, ge=1, description="uploads (datasets and bundles) per non-admin key per "
                                                             "hour")
     key_jobs_per_hour: int = Field(20, ge=1, description="training jobs submitted per non-admin key per hour")

@@ -117,10 +117,9 @@ class BundleStore:
         path = self.path(avatar_id)
         if not path.is_file():
             self._check_present()
-            known = self.ids()
-            raise NotFound(f"no avatar {avatar_id!r} in the bundle store"
-                           + (f" (avatars: {', '.join(known[:20])})" if known else " (the store is empty)"),
-                           field="avatar_id")
+            # never a listing of the store: it would show other tenants' ids (GET /v1/avatars lists the caller's)
+            raise NotFound(f"no avatar {avatar_id!r} in the bundle store (GET /v1/avatars lists the avatars this key "
+                           "may see)", field="avatar_id")
         return path
 
     def manifest(self, avatar_id: str) -> dict:

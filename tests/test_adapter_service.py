@@ -316,3 +316,44 @@ def test_one_render_call_maps_its_frames_in_one_adapter_run(setup, monkeypatch):
     failed = resolve_frames(jobs)
     assert calls == [3] and list(failed) == [1] and failed[1].field == "adapter"
     assert jobs[0].frame is not None and jobs[1].frame is None and jobs[2].frame is not None
+
+
+def test_a_picked_adapter_is_never_another_tenants(server, setup, tmp_path):
+    """source_names makes the service pick an adapter: among the ones the caller may use only (hardening 2). Alice's
+    copy of the deployment's adapter sorts first, so without the rule bob's stream would run through it; a named
+    one of alice's is refused to bob at open, and a not-found answer lists no other adapter."""
+    from service.access.auth import PermissionDenied, Principal
+    from service.errors import NotFound
+
+    engine, (_, _, result, data) = server.engine, setup
+    alice = Principal("ka", "alice", frozenset({"render", "avatars:write"}))
+    bob = Principal("kb", "bob", frozenset({"render", "avatars:write"}))
+    manifest = json.dumps({k: v for k, v in result.manifest.to_dict().items() if k != "id"}).encode()
+
+    async def upload():
+        return data, manifest
+
+    async def chunks():
+        yield (tmp_path / "h.bundle").read_bytes()
+
+    write_bundle(setup[0], tmp_path / "h.bundle", precision="fp32")
+    server.call(engine.replace("shared-head", chunks(), principal=Principal(None, None, frozenset({"admin"}))))
+    (server.service.settings.bundle_dir / "shared-head.bundle.owner").write_text('{"tenant": null, "public": true}')
+    server.call(engine.put_adapter("alices-copy", upload, alice))
+    try:
+        config = pb.SessionConfig(avatar_id="shared-head", width=SIZE, height=SIZE, source_names=list(ARKIT_52))
+        picked = {}
+        for who in (alice, bob):
+            session = server.call(engine.open(config, "grpc", who))
+            picked[who.tenant] = session.header().header.adapter_id
+            engine.close_session(session)
+        assert picked == {"alice": "alices-copy", "bob": ADAPTER}
+        named = pb.SessionConfig(avatar_id="shared-head", width=SIZE, height=SIZE, adapter="alices-copy")
+        with pytest.raises(PermissionDenied):
+            server.call(engine.open(named, "grpc", bob))
+        with pytest.raises(NotFound) as missing:
+            engine.adapter_info("no-such-adapter", bob)
+        assert "alices-copy" not in str(missing.value) and ADAPTER not in str(missing.value)
+    finally:
+        engine.delete_adapter("alices-copy", alice)
+        server.call(engine.delete("shared-head"))

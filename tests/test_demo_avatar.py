@@ -112,7 +112,7 @@ def test_the_default_demo_is_the_shipped_one_copied_validated_in_well_under_a_se
 
 
 def test_without_the_shipped_file_the_demo_is_the_open_head(tmp_path, monkeypatch):
-    from service import server
+    from service import demo as server
     from service.settings import Settings
     from service.store import BundleStore
 

@@ -378,7 +378,8 @@ def test_failing_jobs_end_failed_with_the_reason(archive, tmp_path):
     assert finished[deleted].error.startswith("NotFound: spec.upload_id: ")
     assert gone in finished[deleted].error and "does not exist" in finished[deleted].error
     assert finished[no_model].error.startswith("NotFound: face_model: ")
-    assert "'flame-2023'" in finished[no_model].error and str(settings.facemodel_dir) in finished[no_model].error
+    assert "'flame-2023'" in finished[no_model].error and "facemodels/flame-2023" in finished[no_model].error
+    assert str(settings.data_dir.absolute()) not in finished[no_model].error  # clients read it: no server path
     assert finished[bad].error.startswith("InvalidArgument: spec.preset: ") and "'huge'" in finished[bad].error
     assert all(len(j.error) <= 2000 and j.result is None for j in finished.values())
     assert not BundleStore(settings.bundle_dir).ids()

@@ -9,7 +9,10 @@ One :class:`Access` per process, held by the :class:`~service.engine.Engine` (bo
   ``blendsplat.v1`` (browsers cannot set headers on a WebSocket; a URL would end up in logs).
 - **Tenants**: avatar ids are global, but every avatar, upload and job has an owning tenant. A key reads what its
   tenant owns plus public avatars (the demo) and changes only what its tenant owns; admin keys see everything.
-  Someone else's resource is refused with PERMISSION_DENIED (HTTP 403) naming the resource.
+  Someone else's resource is refused with PERMISSION_DENIED (HTTP 403) naming the resource (ids are global, so a
+  write must say the id is taken; reads answer the same way for consistency), on every route and when a stream
+  resolves its adapter (named, or picked from ``source_names``: another tenant's is never picked). The one rule is
+  :meth:`Principal.may_read`. A not-found answer names only the id asked for, never a listing of the store.
 - **Open routes**: health (``/healthz``, ``/readyz``, gRPC health), ``/metrics``, the API description
   (``/openapi.json``, ``/docs``) and the static pages (which ask for a key in the browser) need no key.
 - **Secure by default**: with ``auth=keys`` (the default) and no key in the database, :meth:`Access.bootstrap`
@@ -22,7 +25,9 @@ One :class:`Access` per process, held by the :class:`~service.engine.Engine` (bo
   job submission: the action, its target, the key and tenant.
 
 A verified key is cached for :data:`CACHE_SECONDS` per process: a key revoked through another replica stops
-working there within that time (at once on the replica that revoked it).
+working there within that time (at once on the replica that revoked it). Open streams (gRPC, WebSocket, job
+events) ask the key database again every ``stream_key_check_seconds`` (:meth:`Access.revoked`) and end with
+UNAUTHENTICATED when their key was revoked; render streams also end after ``max_stream_seconds``.
 """
 
 from __future__ import annotations
@@ -33,7 +38,7 @@ import logging
 import os
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 
 from blendsplat.v1 import render_pb2 as pb
@@ -89,7 +94,13 @@ class Principal:
         return Writer(self.tenant or ADMIN_TENANT, self.admin)
 
     def may_read(self, tenant: str | None, public: bool = False) -> bool:
+        """The one visibility rule (avatars, adapters, uploads, jobs; every route and every stream's adapter): a
+        key sees its tenant's resources and the public ones; an admin key sees all."""
         return self.admin or public or (tenant is not None and tenant == self.tenant)
+
+    def may_use_adapter(self, tenant: str | None) -> bool:
+        """:meth:`may_read` for an adapter: one without a tenant is the deployment's (public)."""
+        return self.may_read(tenant, tenant is None)
 
     def may_write(self, tenant: str | None) -> bool:
         return self.admin or (tenant is not None and tenant == self.tenant)
@@ -207,6 +218,23 @@ class Access:
         """Drop a key from the cache at once (it was revoked here)."""
         with self._lock:
             self._cache = {d: hit for d, hit in self._cache.items() if hit[0].key_id != key_id}
+
+    def revoked(self, key_ids: Iterable[str | None]) -> set[str]:
+        """Which of these keys no longer verify, asked of the key database (never the cache; they are dropped from
+        it). Open streams call it every ``stream_key_check_seconds`` and end the ones of a revoked key. Blocking.
+        With auth off, or the database away (logged), none: a stream is not cut for a failed check."""
+        ids = {k for k in key_ids if k}
+        if not self.enabled or not ids:
+            return set()
+        assert self.keys is not None
+        try:
+            gone = self.keys.inactive(ids)
+        except Exception as e:  # noqa: BLE001 - the database away: checked again at the next interval
+            log.warning("could not check the keys of open streams: %s: %s", type(e).__name__, str(e)[:200])
+            return set()
+        for key_id in gone:
+            self.forget(key_id)
+        return gone
 
     # ---- limits ----
     def take_stream(self, principal: Principal) -> Callable[[], None]:

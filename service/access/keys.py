@@ -205,6 +205,16 @@ class KeyStore:
                 record.revoked_at = datetime.now(UTC)
             return ApiKey.of(record)
 
+    def inactive(self, key_ids: Iterable[str]) -> set[str]:
+        """Which of ``key_ids`` no longer verify (revoked, or gone), asked of the database (open streams' re-check)."""
+        wanted = set(key_ids)
+        if not wanted:
+            return set()
+        with self._sessions() as session:
+            active = set(session.scalars(select(KeyRecord.id).where(KeyRecord.id.in_(wanted),
+                                                                    KeyRecord.revoked_at.is_(None))))
+        return wanted - active
+
     def any_active(self) -> bool:
         with self._sessions() as session:
             return session.scalars(select(KeyRecord.id).where(KeyRecord.revoked_at.is_(None)).limit(1)).first() \

@@ -12,6 +12,7 @@ from fastapi.openapi.docs import get_swagger_ui_html
 from fastapi.responses import FileResponse, JSONResponse, Response
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 
+from ..errors import redact
 from .dependencies import RenderEngine
 from .schemas import Health, Readiness
 
@@ -39,7 +40,8 @@ async def readyz(request: Request, engine: RenderEngine) -> JSONResponse:
         known = {"not_draining": "the server is shutting down", "warm_up": "the warm-up frame is not rendered yet",
                  **request.app.state.problems}
         reasons = {name: known.get(name, "failed") for name, ok in checks.items() if not ok}
-        body["reasons"] = {name: (why() if callable(why) else why) or "failed" for name, why in reasons.items()}
+        body["reasons"] = {name: redact((why() if callable(why) else why) or "failed")  # no server path: no key here
+                           for name, why in reasons.items()}
     return JSONResponse(body, status_code=200 if ready else 503)
 
 

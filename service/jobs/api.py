@@ -36,19 +36,20 @@ from starlette.requests import ClientDisconnect
 
 from ..access.auth import Access
 from ..access.http import Caller
-from ..errors import BodyTooLarge
+from ..errors import BodyTooLarge, redact
 from ..intake import declared_length
 from ..openapi import ErrorBody
 from . import events
 from .archive import ArchiveError
 from .artefacts import ARTEFACTS
-from .checks import CURSOR_PATTERN
+from .checks import CURSOR_PATTERN, MAX_EVENT_ID
 from .models import JobState
 from .multipart import MULTIPART_SLACK, FilePart
 from .schemas import JOB_ID_PATTERN, JobList, JobOut, JobSpec, UploadList, UploadOut
 from .training import Training
 from .uploads import ID_PATTERN as UPLOAD_ID_PATTERN
 from .uploads import InvalidDataset
+from .webhooks import loggable_url
 
 log = logging.getLogger(__name__)
 
@@ -158,7 +159,9 @@ def submit_job(body: JobSpec, request: Request, response: Response, principal: C
     response.status_code = 201 if created else 200
     response.headers["Location"] = f"/v1/jobs/{job.id}"
     if created:
-        log.info("job %s submitted: %s", job.id, job.spec)
+        shown = {**job.spec, "webhook_url": loggable_url(job.spec["webhook_url"])} if job.spec.get("webhook_url") \
+            else job.spec  # the URL's path and query may hold tokens: never logged
+        log.info("job %s submitted: %s", job.id, shown)
         Access.audit(principal, "job.submit", job.id, avatar=body.avatar_id, upload=body.upload_id)
     return training.job_out(job)
 
@@ -210,10 +213,13 @@ def cancel_job(job_id: JobId, request: Request, response: Response, principal: C
               "image/png": {"schema": {"type": "string", "format": "binary"}},
               "application/x-ndjson": {"schema": {"type": "string", "description": "one JSON event per line"}}}},
               404: _ERRORS[404]})
-def get_artefact(job_id: JobId, name: ArtefactName, request: Request, principal: Caller("jobs")) -> FileResponse:
+def get_artefact(job_id: JobId, name: ArtefactName, request: Request, principal: Caller("jobs")) -> Response:
     training = _training(request)
     training.job_for(job_id, principal)
     path, media_type = training.artefact(job_id, name)
+    if media_type == "application/json":  # report, summary: the trainer records its paths; clients get none
+        text = redact(path.read_text(encoding="utf-8", errors="replace"))
+        return Response(text, media_type=media_type, headers={"Cache-Control": "no-store"})
     return FileResponse(path, media_type=media_type, headers={"Cache-Control": "no-store"})
 
 
@@ -227,7 +233,7 @@ def get_artefact(job_id: JobId, name: ArtefactName, request: Request, principal:
               "type": "string", "description": "id:, event:, data: lines (one JSON object) per event"}}}},
               429: {"model": ErrorBody, "description": "too many streams open"}, **_ERRORS})
 def follow_job(job_id: JobId, request: Request, principal: Caller("jobs"),
-               after: Annotated[int | None, Query(ge=0)] = None,
+               after: Annotated[int | None, Query(ge=0, le=MAX_EVENT_ID)] = None,
                last_event_id: Annotated[str | None, Header(alias="Last-Event-ID", max_length=64)] = None,
                ) -> StreamingResponse:
     training = _training(request)
@@ -235,7 +241,7 @@ def follow_job(job_id: JobId, request: Request, principal: Caller("jobs"),
     start = events.last_event_id(last_event_id, after)
     release = training.access.take_stream(principal)  # a key's streams
     try:
-        return events.event_stream(request.app, training, job_id, start, on_close=release)
+        return events.event_stream(request.app, training, job_id, start, on_close=release, key_id=principal.key_id)
     except BaseException:
         release()
         raise

@@ -19,6 +19,7 @@ from ..errors import InvalidArgument
 from .models import JobRecord, JobState
 
 MAX_LIST = 500  # the most jobs, events or deliveries one call returns
+MAX_EVENT_ID = 2**63 - 1  # event ids are PostgreSQL bigints: a cursor past this is refused, never queried
 PROGRESS_FIELDS: dict[str, type] = {
     "iteration": int, "total_iterations": int, "gaussians": int,
     "fraction": float, "eta_seconds": float, "loss": float, "psnr": float,
@@ -99,3 +100,13 @@ def decode_cursor(cursor: str) -> tuple[datetime, str]:
     if match is None:
         raise InvalidArgument("not a cursor this listing returned (<microseconds>~<job id>)", field="cursor")
     return _EPOCH + timedelta(microseconds=int(match[1])), match[2]
+
+
+def event_cursor(value: int | str, field: str) -> int:
+    """An event cursor (``Last-Event-ID``, ``?after=``) checked: an integer from 0 to :data:`MAX_EVENT_ID`, else
+    InvalidArgument naming ``field`` (a value past a bigint would fail in the database mid-stream)."""
+    text = str(value).strip()
+    if not (text.isascii() and text.isdigit() and len(text) <= 20) or int(text) > MAX_EVENT_ID:
+        raise InvalidArgument(f"must be an event id (an integer from 0 to {MAX_EVENT_ID}) this stream sent",
+                              field=field)
+    return int(text)

@@ -47,8 +47,8 @@ from typing import TYPE_CHECKING, Any
 from fastapi import FastAPI
 from starlette.responses import StreamingResponse
 
-from ..errors import InvalidArgument, NotFound, ResourceExhausted, Unavailable
-from .checks import MAX_LIST
+from ..errors import NotFound, ResourceExhausted, Unavailable
+from .checks import MAX_LIST, event_cursor
 from .models import EventKind, JobEvent
 
 if TYPE_CHECKING:
@@ -60,7 +60,6 @@ MEDIA_TYPE = "text/event-stream"
 RETRY_MS = 2000  # the reconnection delay a client is told
 KEEPALIVE = b": keep-alive\n\n"
 PROGRESS_KEYS = ("iteration", "total_iterations", "fraction", "loss", "psnr", "eta_seconds", "gaussians")
-_MAX_ID_CHARS = 20
 DEFAULT_MAX_STREAMS = 100
 
 
@@ -124,12 +123,8 @@ def close_streams(app: FastAPI) -> None:
 def last_event_id(header: str | None, after: int | None) -> int:
     """Where a stream starts: after the ``Last-Event-ID`` header's id, else after ``?after=``, else at the start."""
     if header is not None and header.strip():
-        value = header.strip()
-        if not (value.isascii() and value.isdigit() and len(value) <= _MAX_ID_CHARS):
-            raise InvalidArgument("Last-Event-ID must be an event id (a non-negative integer) this stream sent",
-                                  field="Last-Event-ID")
-        return int(value)
-    return after or 0
+        return event_cursor(header, "Last-Event-ID")
+    return event_cursor(after, "after") if after is not None else 0
 
 
 def event_data(event: JobEvent) -> dict[str, Any]:
@@ -161,15 +156,20 @@ def _end(job_id: str, state: str) -> bytes:
 
 
 async def _follow(training: Training, job_id: str, after: int, registry: EventStreams,
-                  drain: asyncio.Event | None) -> AsyncIterator[bytes]:
+                  drain: asyncio.Event | None, key_id: str | None = None) -> AsyncIterator[bytes]:
     settings = training.settings
     store = training.jobs
     now = time.monotonic()
     deadline = now + settings.events_max_seconds
-    quiet_since = now
+    quiet_since = key_checked = now
     signals = [registry.closing] + ([drain] if drain is not None else [])
     yield f"retry: {RETRY_MS}\n\n".encode()
     while not any(s.is_set() for s in signals):
+        if key_id and time.monotonic() - key_checked >= settings.stream_key_check_seconds:
+            key_checked = time.monotonic()  # the key database, not the cache: a revoked key's stream ends
+            if await asyncio.to_thread(training.access.revoked, {key_id}):
+                yield _revoked(job_id)
+                return
         try:
             job = await asyncio.to_thread(store.get, job_id)  # first: a finished job's last events are in the read
             while True:
@@ -203,11 +203,18 @@ async def _follow(training: Training, job_id: str, after: int, registry: EventSt
                 waiter.cancel()
 
 
+def _revoked(job_id: str) -> bytes:
+    body = {"job_id": job_id, "code": "UNAUTHENTICATED", "message": "the API key of this stream was revoked"}
+    return f"event: error\ndata: {json.dumps(body, separators=(',', ':'))}\n\n".encode()
+
+
 def event_stream(app: FastAPI, training: Training, job_id: str, after: int,
-                 on_close: Callable[[], None] | None = None) -> StreamingResponse:
+                 on_close: Callable[[], None] | None = None, key_id: str | None = None) -> StreamingResponse:
     """The response that streams a job's events after id ``after`` (the caller has checked the job exists and may
     be read). ResourceExhausted (429) when this process has ``events_max_streams`` open. ``on_close`` (called once,
-    whenever the stream ends or never starts) frees what the caller holds for it (the key's stream slot)."""
+    whenever the stream ends or never starts) frees what the caller holds for it (the key's stream slot). ``key_id``:
+    the caller's key, checked again every ``stream_key_check_seconds``; once revoked, an ``error`` event
+    (UNAUTHENTICATED) ends the stream."""
     registry = streams(app)
     slot = registry.reserve()
     drain = getattr(app.state, "closing", None)  # set when the server drains (service.http.app)
@@ -219,7 +226,7 @@ def event_stream(app: FastAPI, training: Training, job_id: str, after: int,
 
     async def body() -> AsyncIterator[bytes]:
         try:
-            async for chunk in _follow(training, job_id, after, registry, drain):
+            async for chunk in _follow(training, job_id, after, registry, drain, key_id):
                 yield chunk
         finally:
             release()

@@ -39,7 +39,7 @@ from sqlalchemy.exc import IntegrityError, OperationalError
 from sqlalchemy.orm import Session
 
 from ..db import BUSY_TIMEOUT_MS, Sessions, open_engine
-from ..errors import FailedPrecondition, InvalidArgument, NotFound
+from ..errors import FailedPrecondition, InvalidArgument, NotFound, redact
 from .checks import (
     PROGRESS_FIELDS,
     canonical,
@@ -251,7 +251,8 @@ class JobStore(JobQueries, Outbox):
             record = self._locked(session, job_id)
             if not self._owned(record, worker_id):
                 return False
-            record.error, record.result = error, outcome
+            # clients read the error (GET, SSE, webhooks): no server path in it (service/errors.py, redact)
+            record.error, record.result = (redact(error) if error else error), outcome
             self._transition(session, record, final, utcnow(), worker=worker_id)
             return True
 

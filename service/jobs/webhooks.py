@@ -227,8 +227,9 @@ class WebhookDispatcher:
                 async with client.stream("POST", url, content=body, headers=headers,
                                          extensions=extensions) as response:
                     status = response.status_code  # the body is not read
-            except httpx.HTTPError as exc:
+            except httpx.HTTPError as exc:  # its text may quote the URL: logged and recorded without its tokens
                 error = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
+                error = error.replace(delivery.url, loggable_url(delivery.url)).replace(url, loggable_url(url))
         self.sent += 1
         delivered = status is not None and 200 <= status < 300
         retry_at = None
@@ -271,12 +272,33 @@ async def _public_address(url: str) -> tuple[str | None, str | None]:
         return None, f"cannot resolve {parts.hostname!r} ({exc.strerror or exc})"  # retried: DNS may come back
     addresses = [ipaddress.ip_address(address[0].split("%", 1)[0]) for *_, address in infos]
     for ip in addresses:
-        if not ip.is_global:
+        if not public_address(ip):
             return None, (f"{REFUSED}{parts.hostname} resolves to {ip}, not a public address (setting "
                           "webhook_private_networks)")
     if not addresses:
         return None, f"cannot resolve {parts.hostname!r} (no address)"
     return str(addresses[0]), None
+
+
+def public_address(ip: ipaddress.IPv4Address | ipaddress.IPv6Address) -> bool:
+    """Whether a webhook may go to ``ip``: a global unicast address (``is_global`` alone lets multicast through; an
+    IPv4-mapped IPv6 address is judged as the IPv4 address it carries)."""
+    mapped = getattr(ip, "ipv4_mapped", None)
+    if mapped is not None:
+        ip = mapped
+    return ip.is_global and not (ip.is_multicast or ip.is_reserved or ip.is_unspecified or ip.is_loopback
+                                 or ip.is_link_local or ip.is_private)
+
+
+def loggable_url(url: str) -> str:
+    """What a log line says of a webhook URL: scheme, host and port, the path and query cut (they may hold tokens,
+    as may user info)."""
+    try:
+        parts = urlsplit(url)
+        port = f":{parts.port}" if parts.port else ""
+        return f"{parts.scheme}://{parts.hostname or '?'}{port}/..."
+    except ValueError:
+        return "?"
 
 
 def _pinned(url: str, address: str) -> tuple[str, str, dict[str, str]]:

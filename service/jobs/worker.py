@@ -86,7 +86,7 @@ from sqlalchemy.exc import SQLAlchemyError
 from render_core.train.trainer import raster_step
 
 from ..db import redacted
-from ..errors import NotFound
+from ..errors import NotFound, hide_paths
 from ..settings import Settings
 from ..store import BundleStore
 from .attempt import Attempt, LeaseLost, WorkerMetrics, error_text
@@ -131,6 +131,7 @@ class Worker:
                  preview_every: int | None = None):
         raster_step(device)  # OptionError naming what is missing, before a job is claimed
         self.settings = settings
+        hide_paths(settings.data_dir)  # the errors it records reach clients: no server path (service/errors.py)
         self.device = device
         self.worker_id = worker_id or default_worker_id()
         self._own_store = store is None
