@@ -25,6 +25,7 @@ from render_core.train.trainer import raster_step
 
 CLIS = {Path(render_core.__file__).parent / "tools" / "cli.py",
         Path(render_core.__file__).parent / "tracking" / "fetch_models.py",  # the models' maintainer command
+        Path(render_core.__file__).parent / "tracking" / "correspond.py",  # rebuilds the shipped correspondence
         *(Path(service.__file__).parent / name
           for name in ("cli.py", "jobs/cli.py", "jobs/display.py", "access/keys_cli.py"))}
 

@@ -525,7 +525,11 @@ def cmd_data_convert(args: argparse.Namespace) -> int:
 
 def cmd_track(args: argparse.Namespace) -> int:
     """A video -> a tracked dataset (render_core/tracking/track.py); progress on stderr, one JSON line with --json."""
-    from ..tracking.track import stderr_progress, track_video
+    from ..tracking.track import track_video
+
+    def stderr_progress(message: str) -> None:
+        print(f"track: {message}", file=sys.stderr, flush=True)
+
 
     report = track_video(args.video, args.out, fps=args.fps, size=args.size, crop=args.crop,
                          max_seconds=args.max_seconds, progress=stderr_progress)

@@ -17,7 +17,6 @@
 from __future__ import annotations
 
 import os
-import sys
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -179,7 +178,3 @@ def _projected(model, fit) -> np.ndarray:
     uv = Xc @ fit.K.T
     uv = uv[..., :2] / uv[..., 2:3]
     return uv[:, problem.corr.landmarks < 468]
-
-
-def stderr_progress(message: str) -> None:
-    print(f"track: {message}", file=sys.stderr, flush=True)
