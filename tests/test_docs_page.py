@@ -45,7 +45,7 @@ def test_the_vendored_swagger_ui_is_5x_with_its_licence():
     assert int(version.split(".")[0]) >= 5, version  # 4.x cannot read OpenAPI 3.1
     assert "Apache License" in (SWAGGER / "LICENSE").read_text()
     assert "swagger-ui-dist" in (SWAGGER / "fetch.sh").read_text()
-    for name in ("swagger-ui-bundle.js", "swagger-ui.css", "favicon-32x32.png", "NOTICE"):
+    for name in ("swagger-ui-bundle.js.gz", "swagger-ui.css", "favicon-32x32.png", "NOTICE"):
         assert (SWAGGER / name).is_file(), name
 
 

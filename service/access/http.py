@@ -20,9 +20,10 @@ from .auth import WS_PROTOCOL, PermissionDenied, Principal, ws_key
 if TYPE_CHECKING:
     from ..engine import Engine
 
-# Routes that need no key: probes, metrics, the API description and the static pages (they ask for a key).
+# Routes that need no key: probes, metrics, the API description and the static pages (they ask for a key), and
+# the Swagger UI assets (/static/swagger: a mount, and its gzipped script served by a route).
 OPEN_PATHS = frozenset({"/healthz", "/readyz", "/metrics", "/openapi.json", "/docs", "/docs/oauth2-redirect",
-                        "/demo", "/jobs", "/favicon.ico"})  # and the Swagger UI assets (/static/swagger, a mount)
+                        "/demo", "/jobs", "/favicon.ico", "/static/swagger/swagger-ui-bundle.js"})
 
 _scheme = HTTPBearer(auto_error=False, scheme_name="apiKey",
                      description="An API key (`blendsplat keys create`, or the admin key in <data_dir>/admin.key), "

@@ -17,4 +17,6 @@ for f in swagger-ui-bundle.js swagger-ui-bundle.js.LICENSE.txt swagger-ui.css fa
 done
 echo "$version" > "$here/VERSION"
 (cd "$here" && sha256sum swagger-ui-bundle.js swagger-ui.css > SHA256SUMS)
+# the script is kept gzipped (served with Content-Encoding: gzip; -n: no name or time, so it does not churn)
+gzip -9nf "$here/swagger-ui-bundle.js"
 echo "swagger-ui-dist $version -> $here"
