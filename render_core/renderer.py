@@ -63,14 +63,15 @@ class DeviceAvatar:
             raise OptionError(f"must be one of {', '.join(LAYOUTS)}, got {layout!r}", field="layout")
         self.device, self.precision, self.store = torch.device(device), precision, STORAGE_DTYPES[precision]
         self.layout = layout
-        self.deltas = avatar.sparse_deltas().to(self.device, self.store)
+        sparse = avatar.sparse_deltas()  # a conversion for a dense avatar: done once
+        self.deltas = sparse.to(self.device, self.store)
         self.matrix = None
         if layout == "dense":
             self.matrix = _dense_matrix(self.deltas)
             self.deltas = None
         # What skin() reads, float32 on the device (the neutral is added to the blended sums); with the dense
         # layout its deltas are an empty table of the same shape (the matrix holds them).
-        held = self.deltas if self.deltas is not None else _no_pairs(avatar.sparse_deltas(), self.device)
+        held = self.deltas if self.deltas is not None else _no_pairs(sparse, self.device)
         self.avatar = replace(avatar, deltas=held).to(torch.float32, self.device)
         self.avatar.deltas = held
         self.raster_mode = avatar.raster_mode
