@@ -445,8 +445,9 @@ def script_cameras(model: FaceModel, script: Script, size: int) -> Cameras:
 
 
 @contextmanager
-def _torch_threads(n: int | None):
-    """torch's intra-op thread count set to ``n`` (None: unchanged) inside the block, restored after."""
+def torch_threads(n: int | None):
+    """torch's intra-op thread count set to ``n`` (None: unchanged) inside the block, restored after (small tensor
+    work, such as the tracker's crops, is slowed down by extra threads on a busy machine)."""
     before = torch.get_num_threads()
     if n is not None and n != before:
         torch.set_num_threads(n)
@@ -529,7 +530,7 @@ def synth_dataset(out_dir, frames: int, size: int, seed: int, facemodel: FaceMod
         it = render_frames(facemodel, script, cameras, albedo)
         while True:
             t0 = time.perf_counter()
-            with _torch_threads(threads):
+            with torch_threads(threads):
                 item = next(it, None)
             render_s += time.perf_counter() - t0
             if item is None:

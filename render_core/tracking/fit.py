@@ -205,7 +205,7 @@ def fit_frames(model, landmarks: np.ndarray, iris: np.ndarray, width: int, heigh
                threads: int | None = None) -> FitResult:
     """Fit N frames' landmarks (``[N, 468, 3]``, ``iris [N, 2, 5, 3]``, pixels of a ``width`` x ``height`` image):
     module docstring. ``principal``: default the image centre; ``focal``: given, or searched on the keyframes."""
-    from .runner import torch_threads
+    from ..data.generate import torch_threads
 
     with torch_threads(threads):
         problem = Problem(model)

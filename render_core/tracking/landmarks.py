@@ -21,10 +21,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..data.generate import torch_threads
 from ..errors import TrackingError
 from .detect import Detection, detect_faces
 from .mesh import PRESENCE, face_mesh, irises, roi_from_detection, roi_from_landmarks
-from .runner import torch_threads
 
 STATUSES = ("detected", "tracked", "interpolated", "dropped")
 

@@ -10,12 +10,10 @@ from __future__ import annotations
 import hashlib
 import json
 import threading
-from contextlib import contextmanager
 from functools import cache
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from ..errors import TrackingError
 
@@ -83,15 +81,3 @@ def load_model(name: str, threads: int = 1) -> Model:
     return models[key]
 
 
-@contextmanager
-def torch_threads(n: int | None):
-    """torch's intra-op thread count set to ``n`` (None: unchanged) inside the block, restored after. The crops are
-    small tensor operations, which extra threads slow down on a busy machine."""
-    before = torch.get_num_threads()
-    if n is not None and n != before:
-        torch.set_num_threads(n)
-    try:
-        yield
-    finally:
-        if torch.get_num_threads() != before:
-            torch.set_num_threads(before)
