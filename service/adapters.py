@@ -7,8 +7,9 @@ a frame arrives, :func:`resolve_frames` at the start of a render call.
   SHA-256), written by :mod:`render_core.adapters.files`. Uploads (``PUT /v1/adapters/{id}``) are validated like
   bundles before anything is stored: the size limit :data:`MAX_ADAPTER_BYTES`, the manifest, and the model
   (:func:`render_core.adapters.validate.validate_model`: opsets, operator domains and allow-list, no external
-  data, names and shapes matching the manifest, loads and runs in onnxruntime); a refusal is INVALID_ARGUMENT
-  naming the reason's field (``model.external_data``, ``model.graph.node``...).
+  data, names and shapes matching the manifest, a static cost bound by shape inference before anything runs
+  (:mod:`render_core.adapters.cost`), then loads and runs in onnxruntime); a refusal is INVALID_ARGUMENT naming the
+  reason's field (``model.external_data``, ``model.graph.node``, ``model`` with "cost" in the message...).
 - Sessions: ``open`` names an ``adapter``, or declares ``source_names`` and the service picks a stored adapter
   whose source names include them and whose target is the avatar's face model. The session then takes source
   coefficients (by position in its source order, or by name), the adapter's source joints from ``joints``
@@ -16,7 +17,9 @@ a frame arrives, :func:`resolve_frames` at the start of a render call.
   (``smoothing`` in ``open``) filters the coefficients per session, with or without an adapter.
 - Running: the frames of one render call are mapped together, one onnxruntime call per adapter for all the
   sessions in the call; a frame whose adapter output is not finite gets its own error (INVALID_ARGUMENT naming
-  ``adapter``) and is never rendered; the others render.
+  ``adapter``) and is never rendered; the others render. A run that takes more CPU time than the adapter budget
+  (the setting ``adapter_budget_ms``: :attr:`Adapters.budget_ms`) has its frames refused (RESOURCE_EXHAUSTED naming
+  ``adapter``, the adapter and the budget), and the adapter is logged as over budget once.
 """
 
 from __future__ import annotations
@@ -42,12 +45,14 @@ from render_core.deform import Frame
 from render_core.rotation import axis_angle_to_matrix
 
 from . import params
-from .errors import InvalidArgument, NotFound, PermissionDenied, some
+from .errors import InvalidArgument, NotFound, PermissionDenied, ResourceExhausted, some
+from .settings import Settings
 
 log = logging.getLogger(__name__)
 
 MAX_ADAPTER_BYTES = 16 << 20  # an adapter's ONNX model
 MAX_MANIFEST_BYTES = 1 << 20
+ADAPTER_BUDGET_MS: float = Settings.model_fields["adapter_budget_ms"].default  # the setting's default
 MayUse = Callable[[str | None], bool]  # may the caller use an adapter of this tenant (None: the deployment's)?
 
 
@@ -64,13 +69,18 @@ class Loaded:
     record: dict[str, Any]
     runtime: Any  # render_core.adapters.runtime.AdapterRuntime
     digest: str
+    budget_ms: float = ADAPTER_BUDGET_MS  # CPU time one run may take (adapter_budget_ms)
+    over_budget: bool = False  # a run has passed the budget (logged once)
 
 
 class Adapters:
-    """The engine's adapters: the store folder and the runtimes loaded from it (one per adapter and digest)."""
+    """The engine's adapters: the store folder and the runtimes loaded from it (one per adapter and digest).
+    ``budget_ms``: the CPU time one run of an adapter may take (the setting ``adapter_budget_ms``; its default when
+    left out), given to the adapters loaded from then on."""
 
-    def __init__(self, root: str | Path):
+    def __init__(self, root: str | Path, budget_ms: float | None = None):
         self.root = Path(root)
+        self.budget_ms = ADAPTER_BUDGET_MS if budget_ms is None else float(budget_ms)
         self._loaded: dict[str, Loaded] = {}
         self._lock = threading.Lock()
 
@@ -145,7 +155,7 @@ class Adapters:
         from render_core.adapters.runtime import AdapterRuntime
 
         model, manifest, record = files.read_adapter(self.root, adapter_id)
-        loaded = Loaded(adapter_id, manifest, record, AdapterRuntime(model, manifest), digest)
+        loaded = Loaded(adapter_id, manifest, record, AdapterRuntime(model, manifest), digest, self.budget_ms)
         with self._lock:
             self._loaded[adapter_id] = loaded
         return loaded
@@ -303,10 +313,23 @@ class SessionAdapter:
         return Drive(self, source.astype(np.float32), base)
 
 
+def _over_budget(loaded: Loaded, cpu_ms: float, frames: int) -> ResourceExhausted:
+    """The error of the frames of a run over the adapter budget; the adapter is logged the first time."""
+    if not loaded.over_budget:
+        loaded.over_budget = True
+        log.warning("adapter %s is over the adapter budget: a run of %d frame(s) took %.1f ms of CPU, the budget "
+                    "is %g ms (adapter_budget_ms); its frames over it are refused", loaded.id, frames, cpu_ms,
+                    loaded.budget_ms)
+    return ResourceExhausted(f"adapter {loaded.id!r} took {cpu_ms:.1f} ms for this frame's run ({frames} frame(s)), "
+                             f"over the adapter budget of {loaded.budget_ms:g} ms (adapter_budget_ms); the frame was "
+                             "not rendered", field="adapter")
+
+
 def resolve_frames(jobs: list) -> dict[int, BaseException]:
     """Give every job that waits for an adapter (``job.drive``, no ``job.frame``) its frame: the jobs of one
     adapter are mapped in one onnxruntime call. Returns {position in ``jobs``: error} for the frames refused (a
-    non-finite adapter output, or a failing run): those are not rendered. Runs on the render thread."""
+    non-finite adapter output, a failing run, or a run over the adapter budget): those are not rendered. Runs on
+    the render thread."""
     failed: dict[int, BaseException] = {}
     groups: dict[int, list[int]] = {}
     for i, job in enumerate(jobs):
@@ -323,12 +346,18 @@ def resolve_frames(jobs: list) -> dict[int, BaseException]:
                 jobs[i].frame = frame
             continue
         try:
+            cpu = time.thread_time()  # onnxruntime computes on this thread (one intra-op thread)
             expression, joints, errors = first.loaded.runtime.run(sources)
+            cpu_ms = (time.thread_time() - cpu) * 1e3
         except Exception as e:  # noqa: BLE001 - the adapter failed for these frames only
             log.warning("adapter %s failed: %s", first.adapter_id, e)
             for i in positions:
                 failed[i] = InvalidArgument(f"adapter {first.adapter_id!r} failed on this frame "
                                             f"({type(e).__name__})", field="adapter")
+            continue
+        if cpu_ms > first.loaded.budget_ms:
+            for i in positions:
+                failed[i] = _over_budget(first.loaded, cpu_ms, len(positions))
             continue
         for row, i in enumerate(positions):
             if errors[row] is not None:

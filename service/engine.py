@@ -17,6 +17,10 @@
 - Fairness: each session is charged the render time its frames take (its share of a batch's time, by estimate);
   the ready session charged least goes first (an idle session counts from "now", so it gets no credit for having
   been idle). A session with slow frames gets its share of the render thread, not all of it.
+- Single frames (``POST /v1/render``, the Render RPC: :meth:`Engine.render_once`) go through the same scheduler as
+  one-frame entries (:class:`OneShot`), charged to their key's account: a key's single renders in flight share one
+  stream's part of the render thread, however many it sends, and at most ``key_max_renders`` of them are in flight
+  per non-admin key (more: RESOURCE_EXHAUSTED / 429 naming the setting).
 - Isolation: when a batched call fails, its frames are rendered again one by one, so the failure is reported to
   the session that caused it (an error naming its frame; a failure that is not a typed error is reported as
   INVALID_ARGUMENT on ``frame``, and logged) and the others get their frames.
@@ -58,7 +62,7 @@ from render_core.media.pixels import to_rgba8
 
 from . import params
 from .access.auth import TRUSTED, Access, Principal
-from .access.limits import no_release
+from .access.limits import Release, no_release
 from .cache import AvatarCache, Loaded
 from .errors import InvalidArgument, NotFound, ResourceExhausted, ServiceError, Unavailable, hide_paths, to_status
 from .intake import Spooled, UploadIntake
@@ -285,6 +289,47 @@ class Session:
             self.finish()
 
 
+class RenderAccount:
+    """The render time charged to one key's single-frame renders together (fair share: one stream's worth)."""
+
+    __slots__ = ("in_flight", "vtime")
+
+    def __init__(self, vtime: float):
+        self.vtime, self.in_flight = vtime, 0
+
+
+class OneShot:
+    """A single-frame render as one entry of the scheduler: ready with its one job until taken, charged to its key's
+    :class:`RenderAccount`; :attr:`done` gets the result (a :class:`Rendered` or the error)."""
+
+    closed = False
+
+    def __init__(self, entry: Loaded, job: Job, out: params.Output, encoder: Encoder, account: RenderAccount):
+        self.entry, self.out, self.encoder, self.account = entry, out, encoder, account
+        self.pending: Job | None = job
+        self.done: asyncio.Future = asyncio.get_running_loop().create_future()
+
+    @property
+    def ready(self) -> bool:
+        return self.pending is not None
+
+    @property
+    def vtime(self) -> float:
+        return self.account.vtime
+
+    @vtime.setter
+    def vtime(self, value: float) -> None:
+        self.account.vtime = value
+
+    def take(self) -> Job:
+        job, self.pending = self.pending, None
+        return job
+
+    def deliver(self, job: Job | None, result: Rendered | BaseException) -> None:
+        if not self.done.done():
+            self.done.set_result(result)
+
+
 class Engine:
     def __init__(self, settings: Settings, metrics: Metrics | None = None, *, access: Access | None = None,
                  store: BundleStore | None = None):
@@ -302,6 +347,8 @@ class Engine:
         self.access = access or Access.trusted(settings)
         self.intake = UploadIntake(self.access)
         self.sessions: dict[str, Session] = {}
+        self.singles: set[OneShot] = set()  # single-frame renders waiting or rendering
+        self._accounts: dict[str | None, RenderAccount] = {}  # key id -> its single renders' charge
         self.draining = False  # not ready; new streams are refused
         self.frames_closed = False  # open streams take no new frames either
         self.warmed_up = False
@@ -313,7 +360,8 @@ class Engine:
         self._guard: asyncio.Task | None = None  # ends the streams of revoked keys, and too long ones
         from .adapters import Adapters
 
-        self.adapters = Adapters(settings.data_dir / "adapters")  # retargeting adapters (issue 19)
+        # retargeting adapters (issue 19), each run held to its per-frame budget
+        self.adapters = Adapters(settings.data_dir / "adapters", budget_ms=settings.adapter_budget_ms)
 
     # --------------------------------------------------------------------------------------------- lifecycle
     async def start(self) -> None:
@@ -379,7 +427,8 @@ class Engine:
         self.begin_drain()
         self.frames_closed = True
         deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline and any(s.ready or s.rendering for s in self.sessions.values()):
+        while time.monotonic() < deadline and (self.singles or any(s.ready or s.rendering
+                                                                    for s in self.sessions.values())):
             await asyncio.sleep(0.01)
         for s in list(self.sessions.values()):
             s.finish(pb.UNAVAILABLE, "the server is shutting down; reconnect to another replica")
@@ -387,6 +436,8 @@ class Engine:
     async def close(self) -> None:
         if self._scheduler is not None:
             self._scheduler.cancel()
+        for shot in list(self.singles):  # never rendered now
+            shot.deliver(None, Unavailable("the server is shutting down; connect to another replica"))
         if self._guard is not None:
             self._guard.cancel()
         self._pool.shutdown(wait=True, cancel_futures=True)
@@ -438,39 +489,72 @@ class Engine:
 
     # ------------------------------------------------------------------------------------------ single frames
     async def render_once(self, request: pb.RenderRequest, principal: Principal = TRUSTED) -> pb.RenderedFrame:
+        """One frame, rendered by the scheduler like a stream's (:class:`OneShot`): one of the key's
+        ``key_max_renders`` slots is held while it waits and renders (RateLimited past them)."""
         if self.draining:
             raise Unavailable("the server is shutting down; connect to another replica")
         self._check_read(principal, request.avatar_id, "avatar_id")
-        entry = await self.cache.acquire(check_id(request.avatar_id))
+        release = await asyncio.to_thread(self._take_render_slot, principal)  # may ask Redis: off the loop
         try:
-            avatar = entry.avatar
-            out = params.output(request.width, request.height, request.codec, request.quality,
-                                self.settings.max_size)
-            job = Job.build(avatar, request.frame, params.expression_order(avatar, list(request.expression_names)),
-                            out, self.settings.max_frame_splat_pixels)
-            encoder = make_encoder(out.codec, out.width, out.height, request.quality)
+            entry = await self.cache.acquire(check_id(request.avatar_id))
             try:
-                (result,), _ = await asyncio.get_running_loop().run_in_executor(self._pool, _render_isolated, entry,
-                                                                                [job], [encoder])
+                avatar = entry.avatar
+                out = params.output(request.width, request.height, request.codec, request.quality,
+                                    self.settings.max_size)
+                job = Job.build(avatar, request.frame, params.expression_order(avatar,
+                                                                               list(request.expression_names)),
+                                out, self.settings.max_frame_splat_pixels)
+                encoder = make_encoder(out.codec, out.width, out.height, request.quality)
+                result = await self._render_single(entry, job, out, encoder, principal.key_id)
             finally:
-                encoder.close()
+                self.cache.release(entry)
         finally:
-            self.cache.release(entry)
+            release()
         if isinstance(result, BaseException):
             raise result
-        self._observe([job], [result], out.codec)
         return pb.RenderedFrame(index=job.index, client_time_us=job.client_time_us, codec=out.codec_enum,
                                 width=out.width, height=out.height, data=result.data, timings=result.timings)
+
+    def _take_render_slot(self, principal: Principal) -> Release:
+        """One of the key's single renders in flight (admin keys and trusted calls: no limit; blocking)."""
+        if principal.key_id is None or principal.admin:
+            return no_release
+        return self.access.limits.take_stream(principal.key_id, self.settings.key_max_renders, "renders")
+
+    async def _render_single(self, entry: Loaded, job: Job, out: params.Output, encoder: Encoder,
+                             key_id: str | None) -> Rendered | BaseException:
+        """Queue one job in the scheduler, charged to ``key_id``'s account, and wait for its result. The encoder
+        is closed on the render thread after it (a render still running when the caller is cancelled ends first)."""
+        account = self._accounts.get(key_id)
+        if account is None:
+            account = self._accounts[key_id] = RenderAccount(self._vclock)  # counts from now, as a new stream
+        shot = OneShot(entry, job, out, encoder, account)
+        account.in_flight += 1
+        self.singles.add(shot)
+        self.wake()
+        try:
+            return await shot.done
+        finally:
+            self.singles.discard(shot)
+            account.in_flight -= 1
+            # an idle account whose charge is behind "now" would count from now anyway: forget it
+            for idle in [k for k, a in self._accounts.items() if not a.in_flight and a.vtime <= self._vclock]:
+                del self._accounts[idle]
+            try:
+                self._pool.submit(encoder.close)
+            except RuntimeError:  # the pool is shut down: nothing renders any more
+                encoder.close()
 
     # -------------------------------------------------------------------------------------------- scheduling
     def wake(self) -> None:
         self._wake.set()
 
-    def _next_batch(self) -> list[Session]:
+    def _next_batch(self) -> list[Session | OneShot]:
         """The ready session charged the least render time (fair share; ties: the pose waiting longest), with the
         other ready sessions of its avatar and size, least charged first, while the batch's estimated work stays
-        within one frame's budget and ``max_batch``."""
-        ready = [s for s in self.sessions.values() if s.ready]
+        within one frame's budget and ``max_batch``. Single renders are entries too, one frame per key's account in
+        a batch (as a stream has one pose pending), so a key's many single renders never fill a call together."""
+        ready = [s for s in self.sessions.values() if s.ready] + [s for s in self.singles if s.ready]
         if not ready:
             return []
         for s in ready:  # a session that was idle has no credit for that time: it counts from now
@@ -478,15 +562,16 @@ class Engine:
         ready.sort(key=lambda s: (s.vtime, s.pending.received))
         first = ready[0]
         self._vclock = first.vtime
-        batch, work = [first], first.pending.cost
+        batch, work, payers = [first], first.pending.cost, {id(_payer(first))}
         budget = self.settings.max_frame_splat_pixels
         for s in ready[1:]:
             if len(batch) >= self.settings.max_batch:
                 break
             if (s.entry is first.entry and (s.out.width, s.out.height) == (first.out.width, first.out.height)
-                    and work + s.pending.cost <= budget):
+                    and work + s.pending.cost <= budget and id(_payer(s)) not in payers):
                 batch.append(s)
                 work += s.pending.cost
+                payers.add(id(_payer(s)))
         return batch
 
     async def _schedule(self) -> None:
@@ -668,6 +753,11 @@ class Engine:
         info = self.adapters.delete(adapter_id)
         self.access.audit(principal, "adapter.delete", adapter_id)
         return info
+
+
+def _payer(entry: Session | OneShot) -> object:
+    """Who a scheduler entry's render time is charged to: a stream itself, a single render its key's account."""
+    return entry.account if isinstance(entry, OneShot) else entry
 
 
 def training_figures(provenance: Any) -> dict[str, Any]:

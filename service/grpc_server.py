@@ -145,6 +145,35 @@ def connection_options(settings) -> list[tuple[str, int]]:
     return [(name, max(1, round(seconds * 1000))) for name, seconds in options]
 
 
+# Per connection: a client opening more streams at once waits for one to end (gRPC queues them client-side).
+MAX_CONCURRENT_STREAMS = 100
+
+
+def guard_options(settings, max_connections: int | None = None) -> list[tuple[str, int]]:
+    """gRPC channel arguments that bound slow, idle and half-open clients (issue 28) without cutting long-lived
+    render streams (they last up to ``max_stream_seconds``):
+
+    - ``grpc.max_allowed_incoming_connections``: ``max_connections`` (the process's, fitted to its descriptor
+      limit at start) open connections; past it new ones are closed at once. gRPC has no per-address limit.
+    - ``grpc.server_handshake_timeout_ms``: ``header_timeout_seconds``: a connection that has not finished its
+      handshake (TLS, the HTTP/2 preface and SETTINGS) by then is closed.
+    - ``grpc.max_concurrent_streams``: :data:`MAX_CONCURRENT_STREAMS` streams at once per connection.
+    - keepalive: the server pings every 20 s and closes a connection whose ping is not answered within 10 s, also
+      on connections without a call (``keepalive_permit_without_calls``, which also lets clients ping those) and
+      on streams that carry no data for minutes (``http2.max_pings_without_data`` 0: no cap on pings between data
+      frames), so a half-open connection is gone within about 30 s; clients may ping every 5 s at most.
+    Connections idle without calls close after ``grpc_max_connection_idle_seconds`` (:func:`connection_options`)."""
+    connections = max_connections or settings.max_connections
+    return [("grpc.max_allowed_incoming_connections", connections),
+            ("grpc.server_handshake_timeout_ms", max(1, round(settings.header_timeout_seconds * 1000))),
+            ("grpc.max_concurrent_streams", MAX_CONCURRENT_STREAMS),
+            ("grpc.keepalive_time_ms", 20_000),
+            ("grpc.keepalive_timeout_ms", 10_000),
+            ("grpc.keepalive_permit_without_calls", 1),
+            ("grpc.http2.max_pings_without_data", 0),
+            ("grpc.http2.min_ping_interval_without_data_ms", 5_000)]
+
+
 REFLECTION_V1 = "grpc.reflection.v1.ServerReflection"
 
 
@@ -163,14 +192,13 @@ def _reflection_v1(names) -> grpc.GenericRpcHandler:
 class GrpcServer:
     """The gRPC server of one process; ``port`` is the bound port (useful with port 0)."""
 
-    def __init__(self, engine: Engine, host: str, port: int):
+    def __init__(self, engine: Engine, host: str, port: int, *, max_connections: int | None = None):
+        """``max_connections``: open connections at most (default: the ``max_connections`` setting)."""
         s = engine.settings
         self.server = grpc.aio.server(options=[
             ("grpc.max_receive_message_length", s.max_message_bytes),
             ("grpc.max_send_message_length", 64 << 20),
-            ("grpc.keepalive_time_ms", 20_000),
-            ("grpc.keepalive_timeout_ms", 10_000),
-            ("grpc.http2.min_ping_interval_without_data_ms", 5_000),
+            *guard_options(s, max_connections),
             *connection_options(s),
         ])
         pb_grpc.add_RenderServiceServicer_to_server(RenderService(engine), self.server)

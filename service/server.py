@@ -39,6 +39,7 @@ from .engine import Engine
 from .errors import ServiceError
 from .grpc_server import GrpcServer
 from .http.app import create_app, stop_reading_bodies
+from .http.connections import ConnectionGuard, protocols
 from .jobs.events import close_streams
 from .jobs.training import RETENTION_INTERVAL_SECONDS, Training, open_stores
 from .jobs.webhooks import WebhookDispatcher, load_secret
@@ -78,6 +79,7 @@ class Service:
         self.grpc: GrpcServer | None = None
         self.http: _Uvicorn | None = None
         self.app = None  # the HTTP app (its state carries readiness reasons and the drain's body refusal)
+        self.connections: ConnectionGuard | None = None  # the HTTP server's connection counts and timers
         self.training: Training | None = None
         self.webhooks: WebhookDispatcher | None = None  # sends job webhooks (service/jobs/webhooks.py)
         self._retention: asyncio.Task | None = None
@@ -117,14 +119,17 @@ class Service:
             log.info("created the demo avatar %r (%s) in %.2f s", DEMO_ID, what, time.perf_counter() - t0)
         elif DEMO_ID in engine.store.ids() and not engine.store.sidecars(DEMO_ID)[1].exists():
             engine.store.set_owner(DEMO_ID, DEMO_OWNER)  # a demo made before avatars had owners: public
-        self.grpc = GrpcServer(engine, s.host, s.grpc_port)
+        # slow and half-open clients: head and body timeouts, connections per server and per address (issue 28)
+        self.connections = ConnectionGuard.from_settings(s)
+        self.grpc = GrpcServer(engine, s.host, s.grpc_port, max_connections=self.connections.max_connections)
         await self.grpc.start()
         self.app = create_app(engine, self.training)
         self.app.state.problems["bundle_store"] = engine.store.problem  # /readyz says why the store is not usable
+        http_protocol, ws_protocol = protocols(self.connections)
         # timeout_graceful_shutdown: replaced by what is left of the drain time when stopping (stop)
-        config = uvicorn.Config(self.app, host=s.host, port=s.http_port, log_level="warning",
-                                ws_max_size=s.max_message_bytes, lifespan="off", timeout_graceful_shutdown=5,
-                                ssl_certfile=s.tls_cert_file, ssl_keyfile=s.tls_key_file)
+        config = uvicorn.Config(self.app, host=s.host, port=s.http_port, log_level="warning", http=http_protocol,
+                                ws=ws_protocol, ws_max_size=s.max_message_bytes, lifespan="off",
+                                timeout_graceful_shutdown=5, ssl_certfile=s.tls_cert_file, ssl_keyfile=s.tls_key_file)
         self.http = _Uvicorn(config)
         self._http_task = asyncio.create_task(self.http.serve())
         while not self.http.started:

@@ -42,7 +42,21 @@ class Settings(BaseSettings):
     max_upload_bytes: int = Field(2 << 30, ge=1024, description="largest bundle upload")
     body_timeout_seconds: float = Field(
         30.0, gt=0, description="an HTTP request body (an upload) that sends no bytes this long is refused (408) "
-                                "and what it had written is removed")
+                                "and what it had written is removed; the connection of a body that no route reads "
+                                "is closed a little later (service/http/connections.py)")
+    header_timeout_seconds: float = Field(
+        10.0, gt=0, le=300, description="an HTTP request's head (request line and headers) must arrive within this "
+                                        "long of the connection opening or of the previous answer, else the "
+                                        "connection is closed (408 when part of it came); also the gRPC server's "
+                                        "handshake timeout. Streams, once open, are never cut by it")
+    max_connections: int = Field(
+        1000, ge=1, description="open connections per server (HTTP and gRPC, each); past it a new connection is "
+                                "closed at once (HTTP: 503 with Retry-After). Lowered at start to a third of the "
+                                "process's file-descriptor limit, so slow clients cannot use every descriptor")
+    max_connections_per_address: int = Field(
+        64, ge=1, description="open HTTP connections from one client address; past it that address's new "
+                              "connections are closed at once (503 with Retry-After). Behind a proxy that does not "
+                              "keep client addresses, raise it to max_connections")
     shutdown_delay_seconds: float = Field(
         0.0, ge=0, description="SIGTERM: keep serving open streams (not ready, no new ones) this long before "
                                "draining, so load balancers stop routing here first")
@@ -57,6 +71,10 @@ class Settings(BaseSettings):
                                                            "Gaussians; the trained one has its own)")
     demo_blendshapes: int = Field(52, ge=1, description="synthetic demo avatar only (the open head has 52)")
     warmup_size: int = Field(512, ge=16, description="readiness waits for one frame of this size")
+    adapter_budget_ms: float = Field(
+        20.0, gt=0, description="per-frame adapter budget: a retargeting adapter's run (the frames of one render "
+                                "call) that takes more CPU time than this is refused (RESOURCE_EXHAUSTED naming "
+                                "the adapter) and those frames are not rendered; the adapter is logged once")
 
     # Training jobs (the job database, dataset uploads, workers).
     jobs_url: str | None = Field(
@@ -73,6 +91,11 @@ class Settings(BaseSettings):
                                                              "its job to the next worker")
     heartbeat_seconds: float = Field(5.0, gt=0, description="worker heartbeat and progress interval")
     job_max_attempts: int = Field(3, ge=1, le=100, description="attempts of a job before it fails")
+    # Video uploads (service/jobs/video.py): refused at upload from the container's metadata and packets, before
+    # decoding, past these; each is at most the tracker's own limit (render_core/tracking/video.py, VideoLimits).
+    max_video_seconds: float = Field(300.0, gt=0, description="longest video upload, in seconds")
+    max_video_side: int = Field(4096, ge=16, description="largest long side (pixels) of a video upload")
+    max_video_frames: int = Field(9000, ge=1, description="most frames of a video upload")
 
     # Access: API keys, tenants, TLS, browsers (service/access/auth.py).
     auth: Literal["keys", "off"] = Field(
@@ -89,6 +112,9 @@ class Settings(BaseSettings):
     key_max_sessions: int = Field(8, ge=1, description="concurrent streams (render and job events) per non-admin "
                                                        "key (more: 429 / RESOURCE_EXHAUSTED); per replica unless "
                                                        "redis_url is set")
+    key_max_renders: int = Field(4, ge=1, description="single-frame renders (POST /v1/render, the Render RPC) in "
+                                                      "flight per non-admin key (more: 429 / RESOURCE_EXHAUSTED); per "
+                                                      "replica unless redis_url is set")
     redis_url: str | None = Field(
         None, description="Redis (redis://[:password@]host:6379/0, rediss:// for TLS) holding the per-key limits, "
                           "so every replica counts against the same ones; unset: each replica counts its own")

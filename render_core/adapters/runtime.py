@@ -1,6 +1,11 @@
 """Running adapters: one onnxruntime session per adapter (CPU provider, one intra-op thread, no spinning), a batch
 of frames [B, S] per call. A frame whose outputs are not all finite is refused on its own (an
-:class:`AdapterError` naming ``adapter``), so NaN or infinity never reaches the renderer."""
+:class:`AdapterError` naming ``adapter``), so NaN or infinity never reaches the renderer.
+
+Limits of a session (the model's cost is bounded statically before it is stored: :mod:`.cost`): it computes on the
+calling thread only (one intra-op thread, sequential), with no memory arena and no memory pattern, so what one run
+allocates is given back when it ends instead of staying reserved for the session's life; a run may be given a
+time limit (``limit_s``: onnxruntime's terminate flag, checked between nodes), as validation's probe run is."""
 
 from __future__ import annotations
 
@@ -19,6 +24,8 @@ def session_options() -> ort.SessionOptions:
     o.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
     o.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
     o.add_session_config_entry("session.intra_op.allow_spinning", "0")  # the renderer needs the cores
+    o.enable_cpu_mem_arena = False  # a run's buffers are freed when it ends, not kept as the arena's high mark
+    o.enable_mem_pattern = False  # no buffers planned ahead from the first run's shapes
     o.log_severity_level = 3
     return o
 
@@ -33,10 +40,22 @@ class AdapterRuntime:
         self._outputs = [OUTPUT_EXPRESSION] + ([OUTPUT_JOINTS] if manifest.num_joints else [])
         self._lock = threading.Lock()  # a session runs one call at a time here (one thread each)
 
-    def run_raw(self, source: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
-        """source [B, S] float32 -> (expression [B, T], joints [B, J, 3] or None), unchecked."""
+    def run_raw(self, source: np.ndarray, limit_s: float | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+        """source [B, S] float32 -> (expression [B, T], joints [B, J, 3] or None), unchecked. With ``limit_s``, a
+        run still going after that many seconds is stopped (onnxruntime raises) at its next node."""
+        feed = {INPUT: np.ascontiguousarray(source, dtype=np.float32)}
         with self._lock:
-            out = self.session.run(self._outputs, {INPUT: np.ascontiguousarray(source, dtype=np.float32)})
+            if limit_s is None:
+                out = self.session.run(self._outputs, feed)
+            else:
+                options = ort.RunOptions()
+                timer = threading.Timer(limit_s, setattr, (options, "terminate", True))
+                timer.daemon = True
+                timer.start()
+                try:
+                    out = self.session.run(self._outputs, feed, options)
+                finally:
+                    timer.cancel()
         return out[0], (out[1] if len(out) > 1 else None)
 
     def run(self, source: np.ndarray) -> tuple[np.ndarray, np.ndarray, list[AdapterError | None]]:

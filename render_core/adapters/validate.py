@@ -12,8 +12,12 @@ An uploaded model is untrusted. :func:`validate_model` refuses, with an :class:`
 - with inputs and outputs other than the manifest's: one input ``source`` float32 [B, S], outputs ``expression``
   float32 [B, T] and, when the manifest has joints, ``joints`` float32 [B, J, 3] (``model.graph.input`` /
   ``model.graph.output``);
-- rejected by the ONNX checker, or failing to load or to run a probe batch in onnxruntime, or giving outputs of
-  other shapes (``model.run``).
+- rejected by the ONNX checker (``model``);
+- of a cost that cannot be bounded statically or passes a bound (``model``, "cost" in the message: a tensor's
+  elements, all intermediate bytes, the work, for the largest batch; :mod:`.cost`), found by shape inference
+  before anything runs;
+- failing to load or to run a probe batch in onnxruntime (within :data:`PROBE_LIMIT_S`), or giving outputs of
+  other shapes (``model.run``). Only a model whose cost is bounded is ever loaded and run.
 """
 
 from __future__ import annotations
@@ -22,10 +26,12 @@ import numpy as np
 import onnx
 from google.protobuf.message import DecodeError
 
+from .cost import adapter_cost
 from .manifest import INPUT, OUTPUT_EXPRESSION, OUTPUT_JOINTS, AdapterError, AdapterManifest
 
 MAX_MODEL_BYTES = 16 << 20
 MAX_NODES = 256
+PROBE_LIMIT_S = 10.0  # the probe run of a bounded model takes milliseconds; a hard stop, not a budget
 OPSETS = range(13, 22)
 DOMAINS = ("", "ai.onnx")
 ALLOWED_OPS = frozenset({
@@ -98,11 +104,12 @@ def validate_model(data: bytes, manifest: AdapterManifest, max_bytes: int = MAX_
         onnx.checker.check_model(model)
     except (onnx.checker.ValidationError, ValueError) as e:
         raise AdapterError(f"the ONNX checker refuses it: {str(e).splitlines()[0][:200]}", field="model") from None
+    adapter_cost(model)  # before onnxruntime sees it: loading may fold constants, i.e. run part of the graph
     from .runtime import AdapterRuntime
 
     try:
         runtime = AdapterRuntime(data, manifest)
-        expression, joints = runtime.run_raw(np.zeros((2, manifest.num_source), np.float32))
+        expression, joints = runtime.run_raw(np.zeros((2, manifest.num_source), np.float32), limit_s=PROBE_LIMIT_S)
     except AdapterError:
         raise
     except Exception as e:  # noqa: BLE001 - onnxruntime raises its own types for broken models

@@ -1,4 +1,5 @@
-"""Per-key limits: concurrent streams, and events (uploads, job submissions) in a sliding hour.
+"""Per-key limits: concurrent streams and single-frame renders in flight, and events (uploads, job submissions) in
+a sliding hour.
 
 Two backends with one interface (:class:`Limits`), chosen by settings (:func:`limits_for`):
 
@@ -10,7 +11,8 @@ Two backends with one interface (:class:`Limits`), chosen by settings (:func:`li
 
   - a key's streams are leases in a sorted set ``<prefix>streams:<key id>`` scored by their expiry. Taking one
     drops expired leases, counts, and adds one; this process renews its own every ``lease_seconds / 3``, and a
-    release removes it. A replica that dies without releasing frees its leases ``lease_seconds`` later.
+    release removes it. A replica that dies without releasing frees its leases ``lease_seconds`` later. A key's
+    single-frame renders in flight are leases the same way, in ``<prefix>renders:<key id>``.
   - events are members of ``<prefix><what>:<key id>`` scored by their time; older than the window they no
     longer count, and a refusal says when the oldest one leaves the window (``Retry-After``).
 
@@ -53,8 +55,15 @@ def no_release() -> None:
     """What taking a stream hands back when nothing was taken (admin keys, trusted calls)."""
 
 
-def _refuse_stream(limit: int) -> RateLimited:
-    return RateLimited(f"this key may hold {limit} streams at once; end one first", retry_after=1,
+# What a key holds at once (:meth:`Limits.take_stream`'s ``what``): how a refusal names it, and its setting.
+CONCURRENT = {"streams": ("streams", "key_max_sessions", "end one first"),
+              "renders": ("single-frame renders in flight", "key_max_renders", "wait for one to finish")}
+
+
+def _refuse_stream(limit: int, what: str = "streams") -> RateLimited:
+    noun, setting, advice = CONCURRENT.get(what, (what, "", "end one first"))
+    named = f" ({setting})" if setting else ""
+    return RateLimited(f"this key may hold {limit} {noun} at once{named}; {advice}", retry_after=1,
                        field="authorization")
 
 
@@ -64,9 +73,11 @@ def _refuse_event(limit: int, what: str, retry_after: float) -> RateLimited:
 
 
 class Limits(Protocol):
-    def take_stream(self, key_id: str, limit: int) -> Release:
+    def take_stream(self, key_id: str, limit: int, what: str = "streams") -> Release:
         """Take one of the key's concurrent streams (RateLimited at ``limit``); call what is returned, once, when
-        the stream ends. Taking may block on the network (call it off an event loop); releasing does not."""
+        the stream ends. ``what``: what is counted (:data:`CONCURRENT`: "streams", or "renders", single-frame
+        renders in flight, counted apart). Taking may block on the network (call it off an event loop); releasing
+        does not."""
 
     def take_event(self, key_id: str, what: str, limit: int, window: float = HOUR) -> None:
         """Count one event (``what``: "uploads", "job submissions") for the key; RateLimited when ``limit`` were
@@ -80,14 +91,15 @@ class LocalLimits:
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
-        self._streams: dict[str, int] = defaultdict(int)
+        self._streams: dict[tuple[str, str], int] = defaultdict(int)  # (what, key id) -> held
         self._events: dict[tuple[str, str], deque[float]] = defaultdict(deque)
 
-    def take_stream(self, key_id: str, limit: int) -> Release:
+    def take_stream(self, key_id: str, limit: int, what: str = "streams") -> Release:
+        counted = (what, key_id)
         with self._lock:
-            if self._streams[key_id] >= limit:
-                raise _refuse_stream(limit)
-            self._streams[key_id] += 1
+            if self._streams[counted] >= limit:
+                raise _refuse_stream(limit, what)
+            self._streams[counted] += 1
         released = False
 
         def release() -> None:
@@ -95,7 +107,9 @@ class LocalLimits:
             with self._lock:
                 if not released:
                     released = True
-                    self._streams[key_id] -= 1
+                    self._streams[counted] -= 1
+                    if not self._streams[counted]:
+                        del self._streams[counted]
         return release
 
     def take_event(self, key_id: str, what: str, limit: int, window: float = HOUR) -> None:
@@ -170,15 +184,15 @@ class RedisLimits:
         self._renewer = threading.Thread(target=self._renew_loop, name="limits-renew", daemon=True)
         self._renewer.start()
 
-    def take_stream(self, key_id: str, limit: int) -> Release:
-        key, lease = f"{self.prefix}streams:{key_id}", uuid.uuid4().hex
+    def take_stream(self, key_id: str, limit: int, what: str = "streams") -> Release:
+        key, lease = f"{self.prefix}{what}:{key_id}", uuid.uuid4().hex
         try:
             taken = self._take_stream(keys=[key], args=[limit, lease, self.lease_seconds])
         except self._errors as e:
             self._failed(e)
             return no_release
         if not taken:
-            raise _refuse_stream(limit)
+            raise _refuse_stream(limit, what)
         with self._lock:
             self._leases[lease] = key
 
