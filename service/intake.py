@@ -1,5 +1,5 @@
-"""The one upload intake: every request body the service keeps (an avatar bundle, a dataset archive, an adapter's
-model) comes in here, whatever the transport or the resource.
+"""The one upload intake: every request body the service keeps (an avatar bundle, a dataset archive or a video, an
+adapter's model) comes in here, whatever the transport or the resource.
 
 1. The declared length (``Content-Length``, parsed once, by :func:`declared_length`) is refused at once when it is
    over the limit, before a byte is read.

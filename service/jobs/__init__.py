@@ -9,10 +9,11 @@ The jobs table is the single source of truth: no broker holds a job. :class:`Job
 - the API: ``schemas.py`` (JobSpec, the one job spec, and the response models), ``training.py`` (Training: the
   stores and what spans them), ``api.py`` (the routes), ``multipart.py`` (the streamed upload body),
   ``events.py`` (server-sent events);
-- uploads: ``uploads.py`` (UploadStore), ``archive.py`` with ``archive_readers.py`` (checked extraction);
+- uploads: ``uploads.py`` (UploadStore), ``archive.py`` with ``archive_readers.py`` (checked extraction),
+  ``video.py`` (a video upload: sniffed, probed for the limits);
 - training: ``worker.py`` (``blendsplat worker``), ``run.py`` (one job trained to its end), ``attempt.py`` (its
   lease: heartbeats, cancel), ``artefacts.py`` (the work folder's files, the commit), ``resize.py`` (a dataset at
-  the job's resolution);
+  the job's resolution), ``track.py`` (a video upload's track stage);
 - ``webhooks.py`` (the dispatcher); ``client.py`` with ``sse.py``, ``cli.py`` with ``display.py`` (``blendsplat
   jobs``).
 """

@@ -1,9 +1,9 @@
-"""The training jobs' REST routes (issue 15): dataset uploads, jobs, their artefacts, and real deletion.
+"""The training jobs' REST routes (issue 15): dataset and video uploads, jobs, their artefacts, and real deletion.
 
 Routes (mounted by :func:`service.http.app.create_app`; every answer is a pydantic model of
 :mod:`service.jobs.schemas`, every error the one JSON error shape of :mod:`service.errors`)::
 
-    POST   /v1/uploads                      multipart/form-data, the archive in the field ``file``: 201 + Location
+    POST   /v1/uploads                      multipart/form-data, an archive or a video in the field ``file``: 201
     GET    /v1/uploads                      every upload, oldest first
     GET    /v1/uploads/{id}
     DELETE /v1/uploads/{id}                 204; 409 while a queued or running job uses it
@@ -12,6 +12,7 @@ Routes (mounted by :func:`service.http.app.create_app`; every answer is a pydant
     GET    /v1/jobs/{id}
     POST   /v1/jobs/{id}/cancel             202 with the job (200 when it had already finished)
     GET    /v1/jobs/{id}/artefacts/{name}   report | summary | curves | contact-sheet | preview | truth | log
+                                            | overlay | dataset | track-report (a job from a video)
     GET    /v1/jobs/{id}/events             server-sent events: the job's history, then live (service/jobs/events.py)
     DELETE /v1/jobs/{id}                    204: the row, its events and its work folder
 
@@ -20,7 +21,9 @@ the operations that span them, and states what deletion removes. **Uploads are s
 arrives (:mod:`service.jobs.multipart`) and the file part's bytes go straight to
 :meth:`~service.jobs.uploads.UploadStore.receive`, which writes them to disk, refuses more than
 ``settings.max_dataset_bytes`` (HTTP 413), checks and extracts the archive and validates the dataset (HTTP 422 with
-the reason); a refused upload leaves nothing behind.
+the reason); a refused upload leaves nothing behind. A video (sniffed by its bytes: :mod:`service.jobs.video`) is
+kept as it is, probed for the ``max_video_*`` limits without being decoded (HTTP 422 naming the limit), and tracked
+by the job that trains on it (:mod:`service.jobs.track`).
 """
 
 from __future__ import annotations
@@ -49,6 +52,7 @@ from .schemas import JOB_ID_PATTERN, JobList, JobOut, JobSpec, UploadList, Uploa
 from .training import Training
 from .uploads import ID_PATTERN as UPLOAD_ID_PATTERN
 from .uploads import InvalidDataset
+from .video import VideoError
 from .webhooks import loggable_url
 
 log = logging.getLogger(__name__)
@@ -77,13 +81,18 @@ jobs = APIRouter(prefix="/v1/jobs", tags=["jobs"])
 
 
 @uploads.post(
-    "", status_code=201, response_model=UploadOut, summary="Upload a tracked-video dataset (an archive)",
-    description="multipart/form-data with the archive (.tar.gz, .tar or .zip holding a dataset in the portable "
-                "format, docs/tracked-video-format.md, at its root or in one top-level folder) in the field `file`. "
-                "The body is streamed to disk, the archive checked before anything is extracted and the dataset "
-                "validated; a refused upload leaves nothing behind.",
+    "", status_code=201, response_model=UploadOut,
+    summary="Upload a tracked-video dataset (an archive) or a video to track",
+    description="multipart/form-data with the file in the field `file`: an archive (.tar.gz, .tar or .zip holding a "
+                "dataset in the portable format, docs/tracked-video-format.md, at its root or in one top-level "
+                "folder), or a video (MP4, MOV, WebM, MKV; recognised by its content, whatever its name) that the "
+                "job trained on it tracks first. The body is streamed to disk; an archive is checked before "
+                "anything is extracted and the dataset validated; a video is probed for the limits "
+                "(BLENDSPLAT_MAX_VIDEO_SECONDS, _SIDE, _FRAMES) without being decoded and kept as it is. A refused "
+                "upload leaves nothing behind.",
     responses={413: {"model": ErrorBody, "description": "larger than BLENDSPLAT_MAX_DATASET_BYTES"},
-               422: {"model": ErrorBody, "description": "a hostile or corrupt archive, or an invalid dataset: the "
+               422: {"model": ErrorBody, "description": "a hostile or corrupt archive, an invalid dataset, or a "
+                                                        "video over a limit, too short or not decodable: the "
                                                         "reason"}},
     openapi_extra={"requestBody": {"required": True, "content": {"multipart/form-data": {"schema": {
         "type": "object", "required": ["file"],
@@ -102,10 +111,10 @@ async def create_upload(request: Request, response: Response, principal: Caller(
         spool = functools.partial(training.intake.receive, principal, limit=limit, field="file", admitted=True)
         upload = await training.uploads.receive(form.chunks(), max_bytes=limit, filename=form.filename,
                                                 tenant=principal.tenant, spool=spool)
-    except (BodyTooLarge, ArchiveError, InvalidDataset) as exc:
+    except (BodyTooLarge, ArchiveError, InvalidDataset, VideoError) as exc:
         if metrics is not None:
-            kind = ("too_large" if isinstance(exc, BodyTooLarge) else
-                    "archive" if isinstance(exc, ArchiveError) else "dataset")
+            kind = ("too_large" if isinstance(exc, BodyTooLarge) else "archive" if isinstance(exc, ArchiveError)
+                    else "video" if isinstance(exc, VideoError) else "dataset")
             metrics.uploads.labels(kind).inc()
         raise
     except ClientDisconnect:
@@ -115,8 +124,8 @@ async def create_upload(request: Request, response: Response, principal: Caller(
         metrics.uploads.labels("accepted").inc()
         metrics.upload_bytes.inc(upload.size)
     response.headers["Location"] = f"/v1/uploads/{upload.id}"
-    log.info("upload %s: %d frames %dx%d (%s, %d bytes)", upload.id, upload.frames, upload.width, upload.height,
-             upload.archive, upload.size)
+    log.info("upload %s: %s of %d frames %dx%d (%s, %d bytes)", upload.id, upload.kind, upload.frames, upload.width,
+             upload.height, upload.archive or upload.container, upload.size)
     return UploadOut.of(upload)
 
 
@@ -203,14 +212,20 @@ def cancel_job(job_id: JobId, request: Request, response: Response, principal: C
 
 
 @jobs.get("/{job_id}/artefacts/{name}", response_class=FileResponse,
-          summary="A job's artefact: report, summary, curves, contact-sheet, preview or log",
+          summary="A job's artefact: report, summary, curves, contact-sheet, preview, truth, log, overlay, dataset "
+                  "or track-report",
           description="report (report.json: the held-out evaluation), summary (summary.json), curves (curves.png), "
                       "contact-sheet (contact_sheet.png), preview (preview.png: the latest, replaced as training "
-                      "goes), truth (truth.png: the dataset's image of the preview's frame), log (log.jsonl). "
-                      "404 with the reason while one is not written yet.",
+                      "goes), truth (truth.png: the dataset's image of the preview's frame), log (log.jsonl). A job "
+                      "from a video upload adds, once the video is tracked: overlay (overlay.png: the tracker's "
+                      "detected and fitted points on a few frames), dataset (dataset.tar.gz: the tracked dataset, "
+                      "which can be uploaded as it is) and track-report (track.json: frames kept, dropped and "
+                      "interpolated, reprojection error). 404 with the reason while one is not written yet.",
           responses={200: {"content": {
-              "application/json": {"schema": {"type": "object", "description": "report or summary"}},
+              "application/json": {"schema": {"type": "object", "description": "report, summary or track-report"}},
               "image/png": {"schema": {"type": "string", "format": "binary"}},
+              "application/gzip": {"schema": {"type": "string", "format": "binary",
+                                              "description": "dataset: the tracked dataset (tar.gz)"}},
               "application/x-ndjson": {"schema": {"type": "string", "description": "one JSON event per line"}}}},
               404: _ERRORS[404]})
 def get_artefact(job_id: JobId, name: ArtefactName, request: Request, principal: Caller("jobs")) -> Response:
@@ -220,7 +235,8 @@ def get_artefact(job_id: JobId, name: ArtefactName, request: Request, principal:
     if media_type == "application/json":  # report, summary: the trainer records its paths; clients get none
         text = redact(path.read_text(encoding="utf-8", errors="replace"))
         return Response(text, media_type=media_type, headers={"Cache-Control": "no-store"})
-    return FileResponse(path, media_type=media_type, headers={"Cache-Control": "no-store"})
+    filename = f"{job_id}-{path.name}" if media_type == "application/gzip" else None  # a download (the dataset)
+    return FileResponse(path, media_type=media_type, filename=filename, headers={"Cache-Control": "no-store"})
 
 
 @jobs.get("/{job_id}/events", response_class=StreamingResponse,

@@ -138,8 +138,9 @@ def detect_kind(path: str | os.PathLike) -> str:
         return "tar"
     for magic, what in _OTHER_MAGIC:
         if head.startswith(magic):
-            raise ArchiveError(f"{what} is not accepted; upload a .tar.gz, .tar or .zip", reason="kind")
-    raise ArchiveError("not a .tar, .tar.gz or .zip archive (unrecognised content)", reason="kind")
+            raise ArchiveError(f"{what} is not accepted; upload a .tar.gz, .tar or .zip, or a video", reason="kind")
+    raise ArchiveError("not a .tar, .tar.gz or .zip archive, nor a video (MP4, MOV, WebM, MKV): unrecognised "
+                       "content", reason="kind")
 
 
 # ---------------------------------------------------------------------------------------------------------- readers

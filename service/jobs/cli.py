@@ -27,6 +27,7 @@ from .client import (
     SERVER_ENV,
     STATES,
     TERMINAL,
+    VIDEO_SUFFIXES,
     ClientError,
     JobsClient,
     WaitTimeout,
@@ -112,8 +113,9 @@ def cmd_submit(args: argparse.Namespace) -> int:
         if source.is_dir():
             check_dataset(source)
         elif source.is_file():
-            if not source.name.lower().endswith(ARCHIVE_SUFFIXES):
-                raise ClientError(f"{source} is neither a dataset folder nor a .tar.gz, .tar or .zip archive")
+            if not source.name.lower().endswith(ARCHIVE_SUFFIXES + VIDEO_SUFFIXES):
+                raise ClientError(f"{source} is neither a dataset folder, a .tar.gz, .tar or .zip archive, nor a "
+                                  "video (.mp4, .mov, .webm, .mkv)")
         else:
             raise ClientError(f"{source}: no such dataset folder or archive")
         client.check()
@@ -148,7 +150,7 @@ def cmd_submit(args: argparse.Namespace) -> int:
 def _default_avatar_id(source: Path) -> str:
     """The avatar id from the dataset's name: letters, digits, ``-`` and ``_`` (what the bundle store accepts)."""
     name = source.name
-    for suffix in ARCHIVE_SUFFIXES:
+    for suffix in ARCHIVE_SUFFIXES + VIDEO_SUFFIXES:
         if name.lower().endswith(suffix):
             name = name[: -len(suffix)]
             break
@@ -295,10 +297,11 @@ def add_commands(commands) -> None:
 
     s = sub.add_parser("submit", parents=[common], epilog=EPILOG, help="upload a dataset and start a training job",
                        description="Uploads DATASET (a tracked-video folder, docs/tracked-video-format.md, packed "
-                                   "into a temporary .tar.gz; or a .tar.gz/.tar/.zip archive of one) with a progress "
+                                   "into a temporary .tar.gz; or a .tar.gz/.tar/.zip archive of one; or a video, "
+                                   ".mp4/.mov/.webm/.mkv, which the job tracks first) with a progress "
                                    "bar, then creates the job (with an Idempotency-Key: a retry after a network "
                                    "error does not make a second job). With --wait, follows it to its end.")
-    s.add_argument("source", type=Path, metavar="DATASET|ARCHIVE", help="dataset folder or archive")
+    s.add_argument("source", type=Path, metavar="DATASET|ARCHIVE|VIDEO", help="dataset folder, archive or video")
     s.add_argument("--preset", choices=("tiny", "paper"), default="tiny",
                    help="tiny: minutes on a CPU; paper: the paper's 40k iterations (default tiny)")
     s.add_argument("--iterations", type=_positive, default=None, metavar="N", help="default: the preset's")

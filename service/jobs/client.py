@@ -45,6 +45,7 @@ SERVER_ENV, KEY_ENV = "BLENDSPLAT_SERVER", "BLENDSPLAT_API_KEY"
 TERMINAL = frozenset({"succeeded", "failed", "cancelled"})
 STATES = ("queued", "running", "succeeded", "failed", "cancelled")
 ARCHIVE_SUFFIXES = (".tar.gz", ".tgz", ".tar", ".zip")
+VIDEO_SUFFIXES = (".mp4", ".m4v", ".mov", ".webm", ".mkv")  # a video the server tracks (it sniffs the content)
 CHUNK = 1 << 20  # bytes read from the archive per piece of the upload body
 POLL_SECONDS = 1.0
 STREAM_FAILURES = 3  # consecutive event-stream failures (no event received) before falling back to polling

@@ -70,7 +70,10 @@ class Watch:
         recorded = _time(event.data.get("time"))
         if recorded is not None and self.since is not None and recorded <= self.since:
             return  # history the first read already summed up
-        if event.event == "progress":
+        if event.event == "progress" and event.data.get("stage") == "track":
+            if isinstance(event.data.get("message"), str):
+                self._say(f"job {self.job_id}: tracking: {event.data['message']}")
+        elif event.event == "progress":
             self._progress(event.data)
         elif event.event == "state":
             self._state(event.data.get("state"), event.data.get("error"))

@@ -7,8 +7,10 @@ order::
     event: progress
     data: {"job_id":"job_...","time":"2026-...","iteration":120,"total_iterations":600,"fraction":0.2,...}
 
-- ``progress``: ``iteration``, ``total_iterations``, ``fraction`` (0 to 1), ``loss``, ``psnr``, ``eta_seconds``,
-  ``gaussians`` (null when the worker did not report one);
+- ``progress``: ``stage`` (``train``, or ``track`` while a video upload is tracked: :mod:`service.jobs.track`),
+  ``iteration``, ``total_iterations``, ``fraction`` (0 to 1), ``loss``, ``psnr``, ``eta_seconds``, ``gaussians``
+  (null when the worker did not report one: all of them while tracking); a ``track`` one adds ``step`` (``start``,
+  ``landmarks``, ``fit``, ``write``, ``done``, ``other``) and ``message``;
 - ``preview``: ``iteration`` and ``url``, the preview artefact (``/v1/jobs/{id}/artefacts/preview``, replaced as
   training goes);
 - ``state``: ``state``, ``previous``, ``attempts``, ``error`` (null unless it failed or was cancelled) and
@@ -60,6 +62,7 @@ MEDIA_TYPE = "text/event-stream"
 RETRY_MS = 2000  # the reconnection delay a client is told
 KEEPALIVE = b": keep-alive\n\n"
 PROGRESS_KEYS = ("iteration", "total_iterations", "fraction", "loss", "psnr", "eta_seconds", "gaussians")
+STAGES = ("track", "train")  # a progress event's stage on the stream (recorded only for track: none is train)
 DEFAULT_MAX_STREAMS = 100
 
 
@@ -132,6 +135,7 @@ def event_data(event: JobEvent) -> dict[str, Any]:
     data = dict(event.data)
     out: dict[str, Any] = {"job_id": event.job_id, "time": event.created_at.isoformat()}
     if event.kind is EventKind.PROGRESS:
+        out["stage"] = data.get("stage") if data.get("stage") in STAGES else "train"
         out.update({key: data.get(key) for key in PROGRESS_KEYS})
         out.update({k: v for k, v in data.items() if k not in out})
     elif event.kind is EventKind.PREVIEW:

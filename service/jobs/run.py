@@ -1,16 +1,19 @@
-"""One claimed job trained to its end (:class:`JobRun`): spec, dataset, face model, Trainer, previews,
-checkpoints, the commit and the job's final state. The worker's contract is :mod:`service.jobs.worker`'s
-docstring; :class:`~service.jobs.attempt.Attempt` is the lease and cancel side of the same job.
+"""One claimed job trained to its end (:class:`JobRun`): spec, dataset (a video upload's tracked first:
+:mod:`service.jobs.track`), face model, Trainer, previews, checkpoints, the commit and the job's final state. The
+worker's contract is :mod:`service.jobs.worker`'s docstring; :class:`~service.jobs.attempt.Attempt` is the lease and
+cancel side of the same job.
 """
 
 from __future__ import annotations
 
+import json
 import logging
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 from sqlalchemy.exc import SQLAlchemyError
 
+from render_core.data.portable import MANIFEST
 from render_core.train.presets import get_preset
 from render_core.train.trainer import Outcome, Progress, Trainer, last_checkpoint
 
@@ -20,6 +23,7 @@ from .attempt import Attempt, error_text
 from .models import EventKind, Job, JobState
 from .resize import dataset_at
 from .schemas import JobSpec
+from .track import TrackInterrupted, tracked_dataset
 from .uploads import UploadStore
 
 if TYPE_CHECKING:
@@ -34,8 +38,12 @@ def dataset_of(uploads: UploadStore, upload_id: str) -> tuple[Path, str]:
     try:
         return uploads.path(upload_id), uploads.get(upload_id).face_model
     except NotFound:
-        raise NotFound(f"the upload {upload_id!r} does not exist (deleted, or expired under the retention "
-                       "period): nothing to train on", field="spec.upload_id") from None
+        raise _gone(upload_id) from None
+
+
+def _gone(upload_id: str) -> NotFound:
+    return NotFound(f"the upload {upload_id!r} does not exist (deleted, or expired under the retention period): "
+                    "nothing to train on", field="spec.upload_id")
 
 
 def facemodel_file(folder: Path, name: str) -> Path | None:
@@ -102,10 +110,13 @@ class JobRun:
         """Train the job to its end: the state it ended in (see :meth:`~service.jobs.worker.Worker.process`)."""
         job, attempt, w = self.job, self.attempt, self.worker
         spec = JobSpec.parse(job.spec)
-        data_dir, face_model = dataset_of(w.uploads, spec.upload_id)
-        facemodel = facemodel_file(w.settings.facemodel_dir, face_model)
         workdir = self.workdir
         workdir.mkdir(parents=True, exist_ok=True)
+        try:
+            data_dir, face_model = self._dataset(spec)
+        except TrackInterrupted:
+            return self._stop_early(0, "while the video was tracked")
+        facemodel = facemodel_file(w.settings.facemodel_dir, face_model)
         if spec.resolution is not None:
             data_dir = self._at_resolution(data_dir, spec.resolution)
         preset = get_preset(spec.preset)
@@ -157,20 +168,37 @@ class JobRun:
             log.warning("job %s: the avatar %r was committed but the job was no longer ours", job.id, spec.avatar_id)
         return state
 
-    def _stop_early(self, iteration: int) -> str:
+    def _dataset(self, spec: JobSpec) -> tuple[Path, str]:
+        """The dataset folder to train on and its face model: the upload's, or for a video upload the one tracked
+        from it in the work folder (an earlier attempt's, or tracked now: TrackInterrupted on a cancel or a
+        shutdown meanwhile)."""
+        uploads = self.worker.uploads
+        try:
+            upload = uploads.get(spec.upload_id)
+            if upload.kind != "video":
+                return uploads.path(spec.upload_id), upload.face_model
+            video = uploads.video_path(spec.upload_id)
+        except NotFound:
+            raise _gone(spec.upload_id) from None
+        data_dir = tracked_dataset(self, video, upload, spec.resolution)
+        manifest = json.loads((data_dir / MANIFEST).read_text(encoding="utf-8"))
+        return data_dir, str(manifest.get("face_model") or upload.face_model)
+
+    def _stop_early(self, iteration: int, where: str | None = None) -> str:
         """Training stopped before its end or before the commit: lost (touch nothing), cancelled, or handed
-        back."""
+        back. ``where``: when it stopped (default: at the iteration)."""
+        at = where or f"at iteration {iteration}"
         if self.attempt.lost.is_set():
-            log.warning("job %s: stopped at iteration %d: the lease is lost; nothing committed", self.job.id, iteration)
+            log.warning("job %s: stopped %s: the lease is lost; nothing committed", self.job.id, at)
             return "lost"
         self.attempt.refresh()
         if self.attempt.lost.is_set():
             return "lost"
         if self.attempt.cancel.is_set():
-            self.event(EventKind.LOG, {"message": f"cancelled at iteration {iteration}", "iteration": iteration})
+            self.event(EventKind.LOG, {"message": f"cancelled {at}", "iteration": iteration})
             self.attempt.finish_heartbeats()
-            return self.end(JobState.CANCELLED, error=f"cancelled at iteration {iteration}")
-        self.event(EventKind.LOG, {"message": f"worker shutting down: handed back at iteration {iteration}",
+            return self.end(JobState.CANCELLED, error=f"cancelled {at}")
+        self.event(EventKind.LOG, {"message": f"worker shutting down: handed back {at}",
                                    "iteration": iteration, "worker": self.worker.worker_id})
         self.attempt.finish_heartbeats()
         try:
@@ -180,7 +208,7 @@ class JobRun:
             return "lost"
         if not released:
             return "lost"
-        log.info("job %s: handed back at iteration %d", self.job.id, iteration)
+        log.info("job %s: handed back %s", self.job.id, at)
         return "released"
 
     def _write_preview(self, iteration: int, pixels, trainer: Trainer) -> None:

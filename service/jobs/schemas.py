@@ -55,7 +55,8 @@ class JobSpec(BaseModel):
         None, ge=16, le=8192, strict=True,
         description="longest image side to train at: a larger dataset is resampled (frames and masks filtered, "
                     "intrinsics scaled) to it, keeping its aspect ratio; a dataset no larger trains at its own size. "
-                    "Default: the dataset's own size")
+                    "Default: the dataset's own size. A video upload is tracked at this size (a square head crop), "
+                    "default its short side, at most 512")
     seed: int = Field(0, ge=0, le=2**32 - 1, strict=True, description="initialisation and frame-sampling seed")
     webhook_url: str | None = Field(None, min_length=8, max_length=MAX_WEBHOOK_URL, pattern=WEBHOOK_URL_PATTERN,
                                     description="http(s) URL that gets a signed POST on every state change of the job "
@@ -127,23 +128,30 @@ class UploadLinks(BaseModel):
 
 class UploadOut(BaseModel):
     upload_id: str
-    size: int = Field(description="bytes of the archive as received (the archive itself is not kept)")
-    sha256: str = Field(description="of the archive as received")
+    kind: Literal["dataset", "video"] = Field(
+        "dataset", description="dataset: a tracked-video dataset (an archive, extracted); video: a video kept as it "
+                               "is, tracked by the job that trains on it")
+    size: int = Field(description="bytes of the file as received (an archive itself is not kept; a video is)")
+    sha256: str = Field(description="of the file as received")
     frames: int
-    width: int
+    width: int = Field(description="a video's: as displayed (its rotation applied)")
     height: int
-    face_model: str = Field(description="the face model the video was tracked with")
+    face_model: str = Field(description="the face model the video was (a video's: will be) tracked with")
     filename: str | None = Field(None, description="the client's file name (display only)")
-    archive: str = Field(description="tar, tar.gz or zip")
+    archive: str | None = Field(description="tar, tar.gz or zip; null for a video")
+    container: str | None = Field(None, description="a video's: mp4, mov, webm or mkv (null for a dataset)")
+    duration: float | None = Field(None, description="a video's length in seconds (null for a dataset)")
+    fps: float | None = Field(None, description="a video's frame rate (null for a dataset)")
     created_at: datetime
     links: UploadLinks
 
     @classmethod
     def of(cls, upload: Upload) -> UploadOut:
-        return cls(upload_id=upload.id, size=upload.size, sha256=upload.sha256, frames=upload.frames,
-                   width=upload.width, height=upload.height, face_model=upload.face_model, filename=upload.filename,
-                   archive=upload.archive, created_at=upload.created_at,
-                   links=UploadLinks(self=f"/v1/uploads/{upload.id}", jobs="/v1/jobs"))
+        return cls(upload_id=upload.id, kind="video" if upload.kind == "video" else "dataset", size=upload.size,
+                   sha256=upload.sha256, frames=upload.frames, width=upload.width, height=upload.height,
+                   face_model=upload.face_model, filename=upload.filename, archive=upload.archive,
+                   container=upload.container, duration=upload.duration, fps=upload.fps,
+                   created_at=upload.created_at, links=UploadLinks(self=f"/v1/uploads/{upload.id}", jobs="/v1/jobs"))
 
 
 class UploadList(BaseModel):
@@ -164,7 +172,7 @@ class WebhookOut(BaseModel):
 
 
 class Progress(BaseModel):
-    fraction: float | None = Field(None, description="0 to 1")
+    fraction: float | None = Field(None, description="0 to 1 (of training; null while a video is tracked)")
     iteration: int | None = None
     total_iterations: int | None = None
     eta_seconds: float | None = None

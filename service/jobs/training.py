@@ -10,13 +10,14 @@ in its work folder ``<settings.work_dir>/<job id>/``, written by the worker (:mo
 **Deletion is real** (face video is biometric data):
 
 - a job: its row and events go at once, then its work folder (checkpoints, previews, log, report, the bundle's
-  copy). A worker training it finds the row gone before its next iteration and stops without writing more and
-  without committing; a file it was writing at that moment is removed by the next retention sweep (a work folder
-  without a job row is an orphan);
+  copy; for a job from a video also the tracked dataset, its archive and the overlay). A worker training it finds
+  the row gone before its next iteration (or its next tracking step) and stops without writing more and without
+  committing; a file it was writing at that moment is removed by the next retention sweep (a work folder without a
+  job row is an orphan);
 - an upload: refused (409, the jobs named) while a queued or running job trains on it: cancel or delete those
-  first. Otherwise its dataset goes, and with it the work folders of the finished jobs trained on it (their
-  previews and contact sheets show the face); those jobs' rows stay (no image data in them) and their artefacts
-  answer 404. Avatars trained from it stay: they are deleted on their own;
+  first. Otherwise its dataset (or video) goes, and with it the work folders of the finished jobs trained on it
+  (their previews, contact sheets, overlays and tracked datasets show the face); those jobs' rows stay (no image
+  data in them) and their artefacts answer 404. Avatars trained from it stay: they are deleted on their own;
 - an avatar: its bundle and the store's verification record are removed and every cached copy in this process is
   dropped (other replicas find it gone at their next session; streams already open keep theirs until they end).
   The work folder of the job that trained it is the job's (DELETE the job, or retention);
@@ -45,11 +46,12 @@ from ..errors import FailedPrecondition, NotFound
 from ..intake import UploadIntake
 from ..settings import Settings
 from ..store import Writer
-from .artefacts import ARTEFACTS, job_writer
+from .artefacts import ARTEFACTS, TRACK_ARTEFACTS, job_writer, why_no_track_artefact
 from .models import Job, JobState
 from .schemas import JobLinks, JobOut, JobSpec, Progress, WebhookOut
 from .store import JobStore
 from .uploads import Upload, UploadStore
+from .video import video_limits
 
 if TYPE_CHECKING:
     from ..metrics import Metrics
@@ -69,7 +71,8 @@ def open_stores(settings: Settings) -> tuple[JobStore, UploadStore]:
     settings.data_dir.mkdir(parents=True, exist_ok=True)
     jobs = JobStore.open(settings.jobs_database_url)
     try:
-        uploads = UploadStore(settings.upload_dir)
+        uploads = UploadStore(settings.upload_dir, video_limits=video_limits(
+            settings.max_video_seconds, settings.max_video_side, settings.max_video_frames))
         uploads.ensure()
         stale = uploads.clean_stale(STALE_GRACE)
         if stale:
@@ -179,6 +182,8 @@ class Training:
     def _why_missing(self, job: Job, name: str, file: str, folder: Path) -> str:
         """The 404 of a job's artefact that is not there, with the reason: not yet (queued, running), never
         (cancelled, failed, no held-out frames, figures the worker could not draw) or no longer (work folder gone)."""
+        if name in TRACK_ARTEFACTS:
+            return why_no_track_artefact(job, name, file, folder, self._upload_kind(job.spec.get("upload_id")))
         during = name in ("preview", "truth", "log")
         if job.state in (JobState.QUEUED, JobState.RUNNING):
             when = "as it trains" if during else "when training ends"
@@ -209,6 +214,12 @@ class Training:
                     if skipped:
                         return f"the worker could not draw it ({skipped})"
         return f"the job {job.state.value} without writing {file}"
+
+    def _upload_kind(self, upload_id) -> str | None:
+        try:
+            return self.uploads.get(upload_id).kind if isinstance(upload_id, str) else None
+        except NotFound:
+            return None
 
     def _servable(self, folder: Path, file: str) -> bool:
         """A regular file directly in the job's work folder (no symbolic link on the way is followed)."""

@@ -1,4 +1,4 @@
-"""The upload store: tracked-video datasets uploaded as archives, by id, in a local folder
+"""The upload store: tracked-video datasets uploaded as archives, and ordinary videos, by id, in a local folder
 (``<data_dir>/uploads/``).
 
 An upload is streamed to a temporary file (never held whole in memory, refused once it passes ``max_bytes``),
@@ -8,6 +8,15 @@ then, in a worker thread, checked and extracted (:mod:`service.jobs.archive`), v
     <root>/<upload_id>/dataset/      the dataset folder (what training reads)
     <root>/<upload_id>/upload.json   id, created_at, size and sha256 of the archive, frames, width, height,
                                      face_model, the original file name, the archive kind
+
+A **video** (recognised by its first bytes, whatever its name: :func:`service.jobs.video.sniff_video`) is kept as
+the file itself, probed for the limits without decoding it (:func:`service.jobs.video.probe_upload`: refused with a
+:class:`~service.jobs.video.VideoError` over ``max_video_seconds``, ``max_video_side``, ``max_video_frames``, too
+short, or not decodable); the job that trains on it tracks it first (:mod:`service.jobs.track`)::
+
+    <root>/<upload_id>/video.<mp4|mov|webm|mkv>   the video as received
+    <root>/<upload_id>/upload.json                kind "video", its container, frames, width, height (as
+                                                  displayed), fps, duration; face_model: the tracker's (open head)
 
 The archive itself is deleted once extracted: face video is biometric data, so the store keeps one copy only, and
 :meth:`UploadStore.delete` and :meth:`UploadStore.sweep` (retention) really remove the files. A refused or
@@ -36,6 +45,7 @@ from render_core.data.portable import MANIFEST, validate_dataset
 from .. import intake
 from ..errors import InvalidArgument, NotFound
 from .archive import ArchiveLimits, detect_kind, extract_archive
+from .video import CONTAINERS, probe_upload, sniff_video, tracker_limits
 
 __all__ = ["ID_PATTERN", "InvalidDataset", "Upload", "UploadStore", "check_upload_id"]
 
@@ -44,6 +54,8 @@ Spool = Callable[[AsyncIterator[bytes], Path], Awaitable[intake.Spooled]]  # bod
 ID_PATTERN = re.compile(r"^upl_[A-Za-z0-9_-]{16,64}$")
 RECORD = "upload.json"
 DATASET = "dataset"
+VIDEO = "video"  # a video upload's file: video.<container>
+KINDS = ("dataset", "video")
 _TEMP_PREFIXES = (".incoming-", ".staging-", ".deleting-")
 _MAX_PROBLEMS = 50  # problems kept in an InvalidDataset
 _MAX_PROBLEM_CHARS = 300  # each
@@ -84,13 +96,21 @@ class Upload:
     height: int
     face_model: str
     filename: str | None  # the client's file name (display only: never used as a path)
-    archive: str  # "tar", "tar.gz" or "zip"
+    archive: str | None  # "tar", "tar.gz" or "zip"; None for a video
     tenant: str | None = None  # the owning tenant (service/access/auth.py; None: admin keys only)
+    kind: str = "dataset"  # "dataset" (an archive, extracted) or "video" (kept as the file, tracked by its job)
+    container: str | None = None  # a video's: "mp4", "mov", "webm" or "mkv"
+    duration: float | None = None  # a video's seconds
+    fps: float | None = None  # a video's frame rate
 
     def to_json(self) -> dict:
-        """The JSON object of ``upload.json`` (``created_at`` as ISO 8601 UTC)."""
+        """The JSON object of ``upload.json`` (``created_at`` as ISO 8601 UTC; a dataset's record as before videos:
+        without ``kind`` and the video fields)."""
         out = asdict(self)
         out["created_at"] = self.created_at.isoformat().replace("+00:00", "Z")
+        if self.kind == "dataset":
+            for key in ("kind", "container", "duration", "fps"):
+                out.pop(key)
         return out
 
     @classmethod
@@ -99,8 +119,10 @@ class Upload:
         return cls(id=str(data["id"]), created_at=created, size=int(data["size"]), sha256=str(data["sha256"]),
                    frames=int(data["frames"]), width=int(data["width"]), height=int(data["height"]),
                    face_model=str(data["face_model"]), filename=data.get("filename"),
-                   archive=str(data.get("archive", "")),
-                   tenant=data["tenant"] if isinstance(data.get("tenant"), str) else None)
+                   archive=data["archive"] if isinstance(data.get("archive"), str) else None,
+                   tenant=data["tenant"] if isinstance(data.get("tenant"), str) else None,
+                   kind=str(data.get("kind") or "dataset"), container=data.get("container"),
+                   duration=_number(data.get("duration")), fps=_number(data.get("fps")))
 
 
 def check_upload_id(upload_id: str, field: str = "upload_id") -> str:
@@ -112,12 +134,14 @@ def check_upload_id(upload_id: str, field: str = "upload_id") -> str:
 
 
 class UploadStore:
-    """Uploaded datasets under ``root``. ``limits`` bound what an archive may hold (default: :class:`ArchiveLimits`
-    defaults)."""
+    """Uploaded datasets and videos under ``root``. ``limits`` bound what an archive may hold (default:
+    :class:`ArchiveLimits` defaults); ``video_limits`` what a video may be (a
+    :class:`~render_core.tracking.video.VideoLimits`; default: the tracker's, which the settings' defaults are)."""
 
-    def __init__(self, root: str | os.PathLike, *, limits: ArchiveLimits | None = None):
+    def __init__(self, root: str | os.PathLike, *, limits: ArchiveLimits | None = None, video_limits=None):
         self.root = Path(root)
         self.limits = limits or ArchiveLimits()
+        self.video_limits = video_limits if video_limits is not None else tracker_limits()
         self._publish_lock = threading.Lock()
 
     def ensure(self) -> None:
@@ -126,14 +150,16 @@ class UploadStore:
     # ------------------------------------------------------------------------------------------------- receiving
     async def receive(self, chunks: AsyncIterator[bytes], *, max_bytes: int, filename: str | None = None,
                       tenant: str | None = None, spool: Spool | None = None) -> Upload:
-        """Receive one archive from ``chunks``, check, extract, validate and publish it; return its record.
+        """Receive one archive or video from ``chunks``, check (an archive: extract and validate; a video: probe)
+        and publish it; return its record.
 
         ``spool`` writes the body to the path it is given (default: :func:`service.intake.spool` bounded by
         ``max_bytes``; the HTTP route passes its :class:`~service.intake.UploadIntake`'s, which also checks the
         tenant's quota on the bytes that arrived, before anything is extracted).
         Raises :class:`~service.errors.BodyTooLarge` once more than ``max_bytes`` arrived (the rest is not read),
-        :class:`~service.jobs.archive.ArchiveError` for an archive refused, :class:`InvalidDataset` for a dataset that
-        is not valid. Whatever happens (also when the caller is cancelled, e.g. the client went away), a refused
+        :class:`~service.jobs.archive.ArchiveError` for an archive refused (or bytes that are neither an archive nor
+        a video), :class:`InvalidDataset` for a dataset that is not valid, :class:`~service.jobs.video.VideoError`
+        for a video refused. Whatever happens (also when the caller is cancelled, e.g. the client went away), a refused
         upload leaves nothing in the store."""
         self.ensure()
         token = secrets.token_hex(8)
@@ -160,26 +186,17 @@ class UploadStore:
 
     def _ingest(self, archive: Path, token: str, size: int, sha256: str, filename: str | None,
                 cancelled: threading.Event, state: dict, tenant: str | None = None) -> Upload:
-        """(Worker thread.) Extract, validate and publish; on any failure or cancellation remove the staging
-        folder."""
+        """(Worker thread.) Extract and validate (a video: probe), and publish; on any failure or cancellation
+        remove the staging folder."""
         staging = self.root / f".staging-{token}"
         staging.mkdir(mode=0o700)
         try:
-            kind = detect_kind(archive)
-            root = extract_archive(archive, staging / "extract", self.limits)
-            archive.unlink(missing_ok=True)  # one copy only: the extracted dataset
-            problems = validate_dataset(root)
-            if problems:
-                raise InvalidDataset(problems)
-            manifest = json.loads((root / MANIFEST).read_text(encoding="utf-8"))
-            os.rename(root, staging / DATASET)
-            if (staging / "extract").exists():
-                shutil.rmtree(staging / "extract")
+            container = sniff_video(archive)
+            fields = (self._stage_video(archive, staging, container) if container is not None
+                      else self._stage_dataset(archive, staging))
             upload_id = "upl_" + secrets.token_urlsafe(16)
             upload = Upload(id=upload_id, created_at=datetime.now(UTC).replace(microsecond=0), size=size,
-                            sha256=sha256, frames=int(manifest["frames"]), width=int(manifest["width"]),
-                            height=int(manifest["height"]), face_model=str(manifest["face_model"]),
-                            filename=_display_name(filename), archive=kind, tenant=tenant)
+                            sha256=sha256, filename=_display_name(filename), tenant=tenant, **fields)
             _write_record(staging / RECORD, upload)
             os.chmod(staging, 0o755)
             target = self.root / upload_id
@@ -194,6 +211,34 @@ class UploadStore:
             shutil.rmtree(staging, ignore_errors=True)
             raise
 
+    def _stage_dataset(self, archive: Path, staging: Path) -> dict:
+        """Extract and validate the archive into ``staging/dataset``; the record's fields."""
+        kind = detect_kind(archive)
+        root = extract_archive(archive, staging / "extract", self.limits)
+        archive.unlink(missing_ok=True)  # one copy only: the extracted dataset
+        problems = validate_dataset(root)
+        if problems:
+            raise InvalidDataset(problems)
+        manifest = json.loads((root / MANIFEST).read_text(encoding="utf-8"))
+        os.rename(root, staging / DATASET)
+        if (staging / "extract").exists():
+            shutil.rmtree(staging / "extract")
+        return {"frames": int(manifest["frames"]), "width": int(manifest["width"]),
+                "height": int(manifest["height"]), "face_model": str(manifest["face_model"]), "archive": kind}
+
+    def _stage_video(self, received: Path, staging: Path, container: str) -> dict:
+        """Move the video into ``staging/video.<container>`` (one copy: the file itself) and probe it against the
+        limits (:class:`~service.jobs.video.VideoError`); the record's fields."""
+        from render_core.facemodel.open_head import NAME as OPEN_HEAD
+
+        video = staging / f"{VIDEO}.{container}"
+        os.rename(received, video)
+        meta = probe_upload(video, container, self.video_limits)
+        os.chmod(video, 0o644)
+        return {"kind": "video", "frames": meta.frames, "width": meta.width, "height": meta.height,
+                "face_model": OPEN_HEAD, "archive": None, "container": container, "duration": meta.duration,
+                "fps": meta.fps}
+
     # -------------------------------------------------------------------------------------------------- reading
     def get(self, upload_id: str) -> Upload:
         """The record of a published upload; NotFound if there is none."""
@@ -204,12 +249,21 @@ class UploadStore:
             raise NotFound(f"no upload {upload_id!r}", field="upload_id") from None
 
     def path(self, upload_id: str) -> Path:
-        """The dataset folder of a published upload (what training reads); NotFound if there is none."""
+        """The dataset folder of a published dataset upload (what training reads); NotFound if there is none. (A
+        video upload has none: :meth:`video_path`.)"""
         self.get(upload_id)
         return self.root / upload_id / DATASET
 
+    def video_path(self, upload_id: str) -> Path:
+        """The file of a published video upload (what its job tracks); NotFound if there is none, or the upload is
+        a dataset."""
+        upload = self.get(upload_id)
+        if upload.kind != "video" or upload.container not in CONTAINERS:
+            raise NotFound(f"upload {upload_id!r} is a dataset, not a video", field="upload_id")
+        return self.root / upload_id / f"{VIDEO}.{upload.container}"
+
     def tenant_bytes(self, tenant: str) -> int:
-        """Bytes of the archives ``tenant`` uploaded that are still kept (its storage quota counts them)."""
+        """Bytes of the archives and videos ``tenant`` uploaded that are still kept (its storage quota counts them)."""
         return sum(u.size for u in self.list() if u.tenant == tenant)
 
     def list(self) -> list[Upload]:
@@ -297,6 +351,10 @@ class UploadStore:
 # --------------------------------------------------------------------------------------------------------- helpers
 class _Abandoned(Exception):
     """The receiving task was cancelled before the upload was published: the worker thread cleans up."""
+
+
+def _number(value) -> float | None:
+    return float(value) if isinstance(value, int | float) and not isinstance(value, bool) else None
 
 
 def _clip(text: str, limit: int) -> str:

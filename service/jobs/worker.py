@@ -17,6 +17,12 @@ trains on the dataset resampled to it (:mod:`service.jobs.resize`, written once 
 default the preset's; previews follow it) and ``gaussians`` / ``mouth`` (initial face / mouth-interior Gaussians,
 default the preset's) override the preset for a fresh start; a resumed job keeps its checkpoint's preset.
 
+**A job from a video upload** runs one stage more, first: the video is tracked into a dataset in the work folder
+(:mod:`service.jobs.track`: ``tracked/``, the ``overlay.png`` of the fitted points, the ``dataset.tar.gz`` archive,
+and ``track.json`` last, which marks the stage complete, so a later attempt does not track again), with ``progress``
+events of ``stage: "track"``; then it trains on that dataset like any other (open head). A tracking error (no face,
+a corrupt stream, ...) fails the job with the tracker's named error.
+
 **The work folder** ``<settings.work_dir>/<job id>/`` is the Trainer's workdir plus the worker's files
 (:mod:`service.jobs.artefacts`): ``preview.png`` is replaced atomically every ``preview_every`` iterations (default
 every checkpoint) and once more at the end of a finished training; ``avatar.bundle`` is the trained bundle (a copy
