@@ -414,6 +414,14 @@ def cmd_adapter_validate(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_bench_track(args: argparse.Namespace) -> int:
+    from .bench_track import bench_track
+
+    report = bench_track(tuple(args.seeds), frames=args.frames, size=args.size, threads=args.threads)
+    _emit(report, indent=None if args.json else 2)
+    return 0
+
+
 def cmd_bench_adapter(args: argparse.Namespace) -> int:
     from .bench import bench_adapter
 
@@ -849,6 +857,15 @@ def _add_bench_commands(sub: argparse._SubParsersAction) -> argparse._SubParsers
     b.add_argument("--seed", type=int, default=0)
     b.add_argument("--json", action="store_true")
     b.set_defaults(fn=cmd_bench_codecs)
+
+    b = bsub.add_parser("track", help="the CPU face tracker on synthetic H.264 videos with a known answer: stage "
+                                      "split, frames per second, pixel and rotation error")
+    b.add_argument("--seeds", type=int, nargs="+", default=[123], help="data synth seeds (one video each)")
+    b.add_argument("--frames", type=int, default=150)
+    b.add_argument("--size", type=int, default=512)
+    b.add_argument("--threads", type=int, default=1, help="torch and LiteRT threads")
+    b.add_argument("--json", action="store_true")
+    b.set_defaults(fn=cmd_bench_track)
 
     b = bsub.add_parser("adapter", help="per-frame cost of a retargeting adapter (onnxruntime) at batch 1 and 8, "
                                         "beside one frame's render time")

@@ -10,7 +10,9 @@ points that fall on no triangle, and points on the eyeballs, teeth or tongue (th
 gaze). The iris centres (numbered 468: the subject's right eye, 469: the left, MediaPipe's iris order) likewise take the
 eyeball's triangle under them (eyeLook* coefficients move it with the eyeball).
 
-``landmarks [L]`` (MediaPipe indices, then 468, 469), ``triangles [L, 3]`` (vertex indices), ``barycentric [L, 3]``.
+``landmarks [L]`` (MediaPipe indices, then 468, 469), ``triangles [L, 3]`` (vertex indices), ``barycentric [L, 3]``,
+and ``offsets [L, 3, 4 + K]``: where each landmark really sits relative to its surface point, as a function of the
+head's rotation and the K expressions, learnt by :mod:`.calibrate` from renders with a known answer (absent: none).
 """
 
 from __future__ import annotations
@@ -38,18 +40,40 @@ class Correspondence:
     landmarks: np.ndarray  # [L] int64
     triangles: np.ndarray  # [L, 3] int64
     barycentric: np.ndarray  # [L, 3] float32
+    offsets: np.ndarray | None = None  # [L, 3, 4 + K] float32 (module docstring)
 
     def points(self, vertices: torch.Tensor) -> torch.Tensor:
-        """``vertices [..., V, 3]`` -> the L points ``[..., L, 3]``."""
+        """``vertices [..., V, 3]`` -> the L surface points ``[..., L, 3]`` (no offsets)."""
         tri = torch.from_numpy(self.triangles)
         w = torch.from_numpy(self.barycentric).to(vertices.dtype)
         return (vertices[..., tri, :] * w[..., None]).sum(-2)
+
+    @staticmethod
+    def offset_features(rotation: torch.Tensor) -> torch.Tensor:
+        """The head's rotation (axis-angle relative to the front view) ``[N, 3]`` -> ``[N, 4]``: 1, r."""
+        return torch.cat([torch.ones_like(rotation[:, :1]), rotation], 1)
+
+    def anchors(self, points: torch.Tensor, rotation: torch.Tensor) -> torch.Tensor:
+        """The surface points ``[L, 3]`` moved by the offsets at each head rotation ``[N, 3]`` -> ``[N, L, 3]``
+        (without offsets: the points, broadcast)."""
+        if self.offsets is None:
+            return points.expand(rotation.shape[0], *points.shape)
+        D = torch.from_numpy(self.offsets[..., :4]).to(points.dtype)
+        return points + torch.einsum("lcf,nf->nlc", D, self.offset_features(rotation.to(points.dtype)))
+
+    def basis_correction(self, dtype: torch.dtype = torch.float64) -> torch.Tensor:
+        """How much more (or less) each landmark moves with each expression than its surface point: ``[K, L, 3]``,
+        added to the landmarks' expression basis (zero without offsets)."""
+        if self.offsets is None:
+            return torch.zeros(0, len(self.landmarks), 3, dtype=dtype)
+        return torch.from_numpy(self.offsets[..., 4:]).to(dtype).permute(2, 0, 1)
 
 
 def load_correspondence(path: Path = SHIPPED) -> Correspondence:
     with np.load(path, allow_pickle=False) as z:
         return Correspondence(z["landmarks"].astype(np.int64), z["triangles"].astype(np.int64),
-                              z["barycentric"].astype(np.float32))
+                              z["barycentric"].astype(np.float32),
+                              z["offsets"].astype(np.float32) if "offsets" in z.files else None)
 
 
 def _reference_view(model, size: int):
@@ -148,8 +172,9 @@ def build_correspondence(model=None, size: int = REFERENCE_SIZE, refine: bool = 
             left_out["no triangle"] += 1
             continue
         if moving[faces[f]].any() != (i >= 468):  # irises on the eyeballs, every other point off them
-            left_out["moving part"] += 1
-            continue
+            if i >= 468 or not refine:  # a face point over an eyeball (an eyelid's margin): snapped below
+                left_out["moving part"] += 1
+                continue
         a, b, c = uv[faces[f]]
         m = np.array([[b[0] - a[0], c[0] - a[0]], [b[1] - a[1], c[1] - a[1]]])
         s, u = np.linalg.solve(m, np.array([x - a[0], y - a[1]]))
@@ -162,12 +187,18 @@ def build_correspondence(model=None, size: int = REFERENCE_SIZE, refine: bool = 
         observed = np.stack([np.concatenate([points[None], np.stack(views)])[:, i] for i in kept], 0)  # [L, V+1, 2]
         cam0 = (cams.K[0].double() @ torch.cat([cams.R[0].double(), cams.t[0].double()[:, None]], -1)).numpy()
         P = np.concatenate([cam0[None], P])
+        drop: list[int] = []
         for n, i in enumerate(kept):
             start = (verts[tris[n]] * bary[n][:, None]).sum(0)
             allowed = moving[faces].any(1) if i >= 468 else ~moving[faces].any(1)
             f, w, _ = _refine(verts, faces, allowed, start, observed[n], P)
             if f >= 0:
                 tris[n], bary[n] = faces[f], w
+            elif moving[tris[n]].any() != (i >= 468):
+                drop.append(n)
+        for n in reversed(drop):  # an eyelid point with no eyelid near it
+            left_out["moving part"] += 1
+            del kept[n], tris[n], bary[n]
     corr = Correspondence(np.array(kept, np.int64), np.array(tris, np.int64), np.array(bary, np.float32))
     if list(corr.landmarks[-2:]) != [468, 469]:
         raise TrackingError("the reference view's irises do not fall on the eyeballs", field="model")
@@ -182,15 +213,26 @@ def build_correspondence(model=None, size: int = REFERENCE_SIZE, refine: bool = 
 
 
 def write_correspondence(corr: Correspondence, path: Path = SHIPPED) -> Path:
-    np.savez_compressed(path, landmarks=corr.landmarks, triangles=corr.triangles, barycentric=corr.barycentric)
+    extra = {} if corr.offsets is None else {"offsets": corr.offsets}
+    np.savez_compressed(path, landmarks=corr.landmarks, triangles=corr.triangles, barycentric=corr.barycentric,
+                        **extra)
     return path
 
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description="rebuild the open head's landmark correspondence")
     p.add_argument("--out", type=Path, default=SHIPPED)
+    p.add_argument("--no-calibration", action="store_true", help="leave the offsets out (:mod:`.calibrate`)")
     args = p.parse_args(argv)
     corr, report = build_correspondence()
+    if not args.no_calibration:
+        from dataclasses import replace
+
+        from ..facemodel.open_head import open_head
+        from .calibrate import calibrate
+
+        offsets, report["calibration"] = calibrate(open_head(), corr, progress=print)
+        corr = replace(corr, offsets=offsets)
     write_correspondence(corr, args.out)
     print(report)
     return 0

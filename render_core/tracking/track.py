@@ -16,6 +16,7 @@
 
 from __future__ import annotations
 
+import itertools
 import os
 import time
 from collections.abc import Callable, Iterator
@@ -26,10 +27,11 @@ import numpy as np
 from ..errors import TrackingError
 from .crop import crop_frame, crop_windows, whole_frame
 from .landmarks import track_landmarks
-from .video import VideoReader
+from .video import VideoLimits, VideoReader
 
 CROPS = ("auto", "none")
 SHEET_FRAMES = 6
+MIN_FRAMES = 10  # fewer frames with a face: "too short" to train an avatar on
 
 
 def _frames(reader: VideoReader, max_seconds: float | None) -> Iterator:
@@ -61,9 +63,16 @@ def _sheet(tiles: list[np.ndarray], path: Path) -> Path:
 
 def track_video(video: str | os.PathLike, out: str | os.PathLike, *, fps: float | None = None, size: int = 512,
                 crop: str = "auto", max_seconds: float | None = None, threads: int | None = 1,
-                progress: Callable[[str], None] | None = None) -> dict:
+                progress: Callable[[str], None] | None = None, limits: VideoLimits | None = None,
+                min_frames: int = MIN_FRAMES) -> dict:
     """Track ``video`` into the dataset folder ``out`` (module docstring); returns the report: frames_kept,
-    frames_dropped (count and runs with reasons), reprojection_px (median over the kept frames), focal, timing_ms."""
+    frames_dropped (count and runs with reasons), reprojection_px (median over the kept frames), focal, faces (the
+    most seen at once, frames with several: the largest was tracked), timing_ms.
+
+    ``progress`` gets ``"<step>: <detail>"`` lines (steps ``landmarks`` - every 5% of the frames -, ``fit``,
+    ``write``; no paths in them) and may raise to stop the tracking (a cancelled job). ``limits``: the video's
+    (default :class:`~.video.VideoLimits`). Fewer than ``min_frames`` frames with a face is a ``TrackingError`` on
+    ``frames`` (too short)."""
     from ..data.generate import held_out_count
     from ..data.portable import Tracking, write_dataset
     from ..facemodel.open_head import open_head
@@ -75,13 +84,16 @@ def track_video(video: str | os.PathLike, out: str | os.PathLike, *, fps: float 
     say = progress or (lambda s: None)
     out = Path(out)
     timing = {"decode": 0.0, "landmarks": 0.0, "fit": 0.0, "write": 0.0}
-    reader = VideoReader(video, fps=fps)
+    reader = VideoReader(video, fps=fps, limits=limits or VideoLimits())
     W, H = reader.info.width, reader.info.height
     window = whole_frame(W, H, size, size)
+    every = max(30, len(reader) // 20)
 
     def inputs() -> Iterator[np.ndarray]:
         it = _frames(reader, max_seconds)
-        while True:
+        for i in itertools.count():
+            if i % every == 0:
+                say(f"landmarks: frame {i} of {len(reader)}")
             t0 = time.perf_counter()
             frame = next(it, None)
             rgb = None if frame is None else (crop_frame(frame.rgb, window) if crop == "none" else frame.rgb)
@@ -90,7 +102,6 @@ def track_video(video: str | os.PathLike, out: str | os.PathLike, *, fps: float 
                 return
             yield rgb
 
-    say(f"landmarks: {video}")
     t0 = time.perf_counter()
     track = track_landmarks(inputs(), threads=threads)
     timing["landmarks"] = time.perf_counter() - t0 - timing["decode"]
@@ -99,8 +110,9 @@ def track_video(video: str | os.PathLike, out: str | os.PathLike, *, fps: float 
         window = crop_windows(track.boxes, W, H, size, size, "fixed")[0]
         landmarks, iris = window.to_crop(landmarks), window.to_crop(iris)
     kept = track.kept
-    if not len(kept):
-        raise TrackingError("no frame kept", field="face")
+    if len(kept) < min_frames:
+        raise TrackingError(f"the video is too short: a face in {len(kept)} frames, at least {min_frames} are needed",
+                            field="frames")
     say(f"fit: {len(kept)} frames")
     t0 = time.perf_counter()
     model = open_head()
@@ -121,7 +133,7 @@ def track_video(video: str | os.PathLike, out: str | os.PathLike, *, fps: float 
     tiles: list[np.ndarray] = []
     projected = _projected(model, fit)
     masks: list[np.ndarray] = []
-    say(f"write: {out}")
+    say(f"write: {n} frames")
     t_write = time.perf_counter()
     decode_before = timing["decode"]
     where = {int(f): k for k, f in enumerate(kept)}
@@ -153,6 +165,7 @@ def track_video(video: str | os.PathLike, out: str | os.PathLike, *, fps: float 
         "dropped_runs"]}, "interpolated": track.status.count("interpolated"),
         "reprojection_px": round(float(np.median(fit.reprojection_px)), 3), "focal_px": round(float(fit.K[0, 0]), 2),
         "size": size, "crop": crop, "fps": float(reader.fps), "train": n - n_test, "test": n_test,
+        **{k: track.report()[k] for k in ("max_faces", "frames_with_several_faces")},
         "timing_ms": {k: round(1000 * v, 1) for k, v in timing.items()},
         "frames_per_second": {"landmarks_and_fit": round(len(track.status) / max(timing["landmarks"]
                                                                                  + timing["fit"], 1e-9), 1)}}
@@ -170,10 +183,11 @@ def _projected(model, fit) -> np.ndarray:
     """The fitted model's face-mesh points (irises excluded) projected in every kept frame ``[N, L', 2]``."""
     import torch
 
-    from .fit import Problem
+    from .fit import R0, Problem, matrix_to_axis_angle
 
     problem = Problem(model)
-    X = problem.T[None] + torch.einsum("nk,klc->nlc", torch.from_numpy(fit.expression), problem.B)
+    rotation = matrix_to_axis_angle(R0.T @ torch.from_numpy(fit.R).double())
+    X = problem.anchors(rotation) + torch.einsum("nk,klc->nlc", torch.from_numpy(fit.expression).double(), problem.B)
     Xc = X.numpy() @ np.swapaxes(fit.R, 1, 2) + fit.t[:, None]
     uv = Xc @ fit.K.T
     uv = uv[..., :2] / uv[..., 2:3]

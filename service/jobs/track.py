@@ -46,7 +46,7 @@ from render_core.errors import TrackingError
 from ..errors import redact
 from .attempt import LeaseLost
 from .models import EventKind
-from .video import MIN_VIDEO_FRAMES
+from .video import MIN_VIDEO_FRAMES, video_limits
 
 if TYPE_CHECKING:
     from .run import JobRun
@@ -123,7 +123,9 @@ def _track(run: JobRun, video: Path, workdir: Path, size: int) -> dict[str, Any]
     from render_core.tracking.track import track_video
 
     out = workdir / TRACKED
-    report = track_video(video, out, size=size, crop="auto", threads=1, progress=_progress(run))
+    s = run.worker.settings
+    report = track_video(video, out, size=size, crop="auto", threads=1, progress=_progress(run),
+                         limits=video_limits(s.max_video_seconds, s.max_video_side, s.max_video_frames))
     kept = int(report.get("frames_kept") or 0)
     if kept < MIN_VIDEO_FRAMES:
         raise TrackingError(f"the video is too short: a face was kept in {kept} frames, at least {MIN_VIDEO_FRAMES} "

@@ -16,9 +16,8 @@ tracked into a dataset by the job that trains on it (:mod:`service.jobs.track`).
   ``reason`` is the tracker's field (``video``: not a video we read, or corrupt; ``duration``, ``resolution``,
   ``frames``: over a limit) or ``too_short``; the message names the problem and the limit, never a server path.
 
-The limits a job's tracker applies are its own (:class:`render_core.tracking.video.VideoLimits`, the defaults of
-these settings): :func:`video_limits` takes the smaller of each, so an upload accepted here is never refused by the
-tracker's limits later.
+The same limits (:func:`video_limits`, a :class:`render_core.tracking.video.VideoLimits` from the settings) are
+the tracker's when the job tracks the video, so an upload accepted here is never refused by the tracker later.
 """
 
 from __future__ import annotations
@@ -89,13 +88,11 @@ def tracker_limits():
 
 
 def video_limits(seconds: float, side: int, frames: int):
-    """The :class:`~render_core.tracking.video.VideoLimits` an upload is checked against: the settings', each at most
-    the tracker's own (module docstring)."""
+    """The :class:`~render_core.tracking.video.VideoLimits` of the settings: an upload is checked against them, and
+    the job's tracker applies them (module docstring)."""
     from render_core.tracking.video import VideoLimits
 
-    own = tracker_limits()
-    return VideoLimits(seconds=min(float(seconds), own.seconds), long_side=min(int(side), own.long_side),
-                       frames=min(int(frames), own.frames))
+    return VideoLimits(seconds=float(seconds), long_side=int(side), frames=int(frames))
 
 
 def _detail(exc: TrackingError, path: Path) -> str:
