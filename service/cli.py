@@ -273,6 +273,9 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--vs-v1", action="store_true", help="also the same avatar as a schema-1 (dense) bundle")
     b.add_argument("--json", action="store_true", help="one JSON line")
     b.set_defaults(fn=cmd_bench_load)
+    from .bench_webrtc import add_parser as add_bench_webrtc
+
+    add_bench_webrtc(p.bench_commands)  # `blendsplat bench webrtc` (service/bench_webrtc.py)
     return p
 
 

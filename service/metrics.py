@@ -52,6 +52,10 @@ class Metrics:
         self.limit_failures = Counter("blendsplat_limit_checks_failed", "per-key limit checks that could not reach "
                                       "Redis (let through: limits fail open)", registry=r)
         self.ready = Gauge("blendsplat_ready", "1 when the process takes new streams", registry=r)
+        self.webrtc_sessions = Gauge("blendsplat_webrtc_sessions", "open WebRTC sessions (peer connections, each "
+                                     "with its engine session)", registry=r)
+        self.webrtc_closed = Counter("blendsplat_webrtc_closed", "WebRTC sessions closed, by why (deleted, ended, "
+                                     "failed, timeout, vanished, drain)", ["reason"], registry=r)
         for stage in STAGES:
             self.stage.labels(stage)
         # Training jobs: uploads and submissions seen by this process, retention deletions.

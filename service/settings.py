@@ -8,10 +8,10 @@ from __future__ import annotations
 
 import re
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 from pydantic import Field, field_validator, model_validator
-from pydantic_settings import BaseSettings, SettingsConfigDict
+from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 # Every form of API key the service accepts (service/access/keys.py): printable ASCII without spaces, 16 to 512
 # characters. Its own keys (bsk_<id>_<secret>) are of this form; so must an admin key made elsewhere be.
@@ -81,6 +81,11 @@ class Settings(BaseSettings):
         None, description="job database URL: sqlite:///PATH (one machine) or postgresql+psycopg://... (default: "
                           "a SQLite file <data_dir>/jobs.db)")
     max_dataset_bytes: int = Field(8 << 30, ge=1024, description="largest dataset archive upload")
+    max_extraction_ratio: float = Field(
+        50.0, ge=1, description="an archive whose extraction would take more than this many bytes on disk per "
+                                "archive byte (each file rounded up to whole 4 KiB blocks) is refused at upload "
+                                "(422, reason bomb); honest datasets of PNG frames are near 1. Not applied below "
+                                "16 MiB extracted, nor to a video job's own tracked frames")
     upload_retention_hours: float = Field(
         168.0, ge=0, description="uploaded datasets (face video: biometric data) are deleted this long after "
                                  "upload (0: never by age; DELETE /v1/uploads/{id} deletes at once)")
@@ -92,7 +97,7 @@ class Settings(BaseSettings):
     heartbeat_seconds: float = Field(5.0, gt=0, description="worker heartbeat and progress interval")
     job_max_attempts: int = Field(3, ge=1, le=100, description="attempts of a job before it fails")
     # Video uploads (service/jobs/video.py): refused at upload from the container's metadata and packets, before
-    # decoding, past these; each is at most the tracker's own limit (render_core/tracking/video.py, VideoLimits).
+    # decoding, past these; the job's tracker applies the same ones (render_core/tracking/video.py, VideoLimits).
     max_video_seconds: float = Field(300.0, gt=0, description="longest video upload, in seconds")
     max_video_side: int = Field(4096, ge=16, description="largest long side (pixels) of a video upload")
     max_video_frames: int = Field(9000, ge=1, description="most frames of a video upload")
@@ -128,8 +133,14 @@ class Settings(BaseSettings):
     key_uploads_per_hour: int = Field(20, ge=1, description="uploads (datasets and bundles) per non-admin key per "
                                                             "hour")
     key_jobs_per_hour: int = Field(20, ge=1, description="training jobs submitted per non-admin key per hour")
-    tenant_storage_bytes: int = Field(20 << 30, ge=1 << 20, description="storage quota of a tenant (its bundles "
-                                                                        "and uploads)")
+    tenant_storage_bytes: int = Field(
+        20 << 30, ge=1 << 20, description="storage quota of a tenant: bytes on disk of its bundles, its uploads as "
+                                          "extracted and its jobs' work folders (checkpoints, tracked frames, "
+                                          "overlays); over it an upload or job submission is refused (429) and a "
+                                          "running job fails (StorageQuotaExceeded)")
+    tenant_max_files: int = Field(
+        200_000, ge=1, description="files and folders a tenant's uploads may hold on disk, all together (more: the "
+                                   "upload is refused, 429, and nothing is kept)")
 
     # Job events and webhooks (service/jobs/events.py, service/jobs/webhooks.py).
     events_max_streams: int = Field(100, ge=1, description="concurrent job event streams (GET /v1/jobs/{id}/events) "
@@ -167,6 +178,64 @@ class Settings(BaseSettings):
     grpc_max_connection_idle_seconds: float = Field(
         0.0, ge=0, description="a gRPC connection with no call this long is closed; 0: never")
 
+    # WebRTC egress (service/webrtc/, the signalling in service/http/webrtc.py).
+    webrtc_host_addresses: Annotated[list[str], NoDecode] = Field(
+        [], description="the only local addresses WebRTC gathers host candidates on and offers in its answers "
+                        "(comma list of IP addresses, e.g. 127.0.0.1 on a test machine, or the address clients "
+                        "reach the pod at); empty: every interface's, as aioice gathers them (it skips 127.0.0.1). "
+                        "When every address is loopback, remote candidates that are not loopback are ignored")
+    webrtc_stun_urls: Annotated[list[str], NoDecode] = Field(
+        [], description="STUN servers (comma list of stun:HOST[:PORT]): the server asks the first for its "
+                        "server-reflexive candidate, and clients get them all as Link rel=ice-server headers")
+    webrtc_turn_urls: Annotated[list[str], NoDecode] = Field(
+        [], description="TURN servers for clients (comma list of turn:HOST[:PORT][?transport=udp|tcp] or turns:...), "
+                        "sent as Link rel=ice-server headers with short-lived credentials from webrtc_turn_secret")
+    webrtc_turn_secret: str | None = Field(
+        None, description="the TURN server's shared secret (coturn: use-auth-secret, static-auth-secret): each "
+                          "session's username is EXPIRY:blendsplat, its credential base64(HMAC-SHA1(secret, "
+                          "username)); needed with webrtc_turn_urls")
+    webrtc_turn_ttl_seconds: float = Field(3600.0, gt=0, le=86400 * 7, description="TURN credentials' lifetime")
+    webrtc_max_offer_bytes: int = Field(32768, ge=1024, le=1 << 20, description="largest SDP offer (POST "
+                                                                                "/v1/webrtc; more: 413)")
+    webrtc_connect_seconds: float = Field(
+        15.0, gt=0, le=300, description="a WebRTC session whose peer has not connected (ICE and DTLS) this long "
+                                        "after the offer is closed and freed")
+    webrtc_peer_timeout_seconds: float = Field(
+        10.0, gt=0, le=300, description="a connected WebRTC session that hears nothing from its peer (RTCP reports, "
+                                        "data-channel messages) this long is closed and freed (a vanished peer)")
+    webrtc_max_bitrate: int = Field(
+        800_000, ge=250_000, le=20_000_000, description="the most bits per second a WebRTC video encoder is set "
+                                                          "to, whatever the receiver's bandwidth estimate (REMB) "
+                                                          "allows")
+
+    @field_validator("webrtc_host_addresses", "webrtc_stun_urls", "webrtc_turn_urls", mode="before")
+    @classmethod
+    def _comma_list(cls, value: object) -> object:
+        if isinstance(value, str):
+            return [part.strip() for part in value.split(",") if part.strip()]
+        return value
+
+    @field_validator("webrtc_host_addresses")
+    @classmethod
+    def _ip_addresses(cls, value: list[str]) -> list[str]:
+        import ipaddress
+
+        for address in value:
+            try:
+                ipaddress.ip_address(address)
+            except ValueError:
+                raise ValueError(f"{address!r} is not an IP address (a comma list of them)") from None
+        return value
+
+    @field_validator("webrtc_stun_urls", "webrtc_turn_urls")
+    @classmethod
+    def _ice_urls(cls, value: list[str], info) -> list[str]:
+        schemes = ("stun:", "stuns:") if info.field_name == "webrtc_stun_urls" else ("turn:", "turns:")
+        for url in value:
+            if not url.startswith(schemes) or len(url) > 500 or any(c in url for c in ' <>,;"'):
+                raise ValueError(f"{url[:100]!r} is not a {' or '.join(schemes)} URL")
+        return value
+
     @field_validator("admin_key")
     @classmethod
     def _admin_key(cls, value: str | None) -> str | None:
@@ -183,6 +252,8 @@ class Settings(BaseSettings):
             path = getattr(self, name)
             if path is not None and not path.is_file():
                 raise ValueError(f"{name}: {path} is not a readable file")
+        if self.webrtc_turn_urls and not self.webrtc_turn_secret:
+            raise ValueError("webrtc_turn_urls needs webrtc_turn_secret (the TURN server's shared secret)")
         return self
 
     @property

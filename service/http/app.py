@@ -34,7 +34,7 @@ from ..errors import BlendsplatError, BodyRefused, BodyTimeout, ServiceError, ht
 from ..jobs.api import ROUTERS as TRAINING_ROUTERS
 from ..jobs.training import Training
 from ..openapi import document_errors
-from . import adapters, avatars, ops, render
+from . import adapters, avatars, ops, render, webrtc
 
 
 def error_response(exc: BaseException, where: str = "", metrics=None) -> JSONResponse:
@@ -175,7 +175,8 @@ def create_app(engine: Engine, training: Training | None = None) -> FastAPI:
     app.state.training = training
     app.state.problems = {}  # readiness check -> why it fails: a text, or a callable asked then (set by the process)
     app.state.closing = asyncio.Event()  # set by stop_reading_bodies (drain)
-    for module in (avatars, render, adapters, ops):
+    app.state.webrtc = webrtc.Peers(engine)  # WebRTC sessions (service/webrtc/)
+    for module in (avatars, render, adapters, ops, webrtc):
         app.include_router(module.router)
     # Swagger UI 5 (it reads OpenAPI 3.1), vendored from the npm package swagger-ui-dist: service/static/swagger/
     app.mount("/static/swagger", StaticFiles(directory=ops.SWAGGER), name="swagger-ui")
@@ -188,10 +189,12 @@ def create_app(engine: Engine, training: Training | None = None) -> FastAPI:
     if engine.settings.allowed_origins:  # browsers on other origins (the server's own pages need no CORS)
         app.add_middleware(CORSMiddleware, allow_origins=engine.settings.allowed_origins, allow_methods=["*"],
                            allow_headers=["Authorization", "Content-Type", "Idempotency-Key", "Last-Event-ID"],
-                           expose_headers=["Location", "Retry-After", "X-Blendsplat-Timings"], max_age=600)
+                           expose_headers=["Location", "Link", "Retry-After", "X-Blendsplat-Timings"], max_age=600)
     document_errors(app, OPEN_PATHS, bodies={
         ("/v1/render", "post"): render.render_body(engine.settings.max_size),
         ("/v1/avatars/{avatar_id}", "put"): avatars.BUNDLE_BODY,
         ("/v1/adapters/{adapter_id}", "put"): adapters.ADAPTER_UPLOAD_BODY,
+        ("/v1/webrtc", "post"): webrtc.offer_body(engine.settings.webrtc_max_offer_bytes),
+        ("/v1/webrtc/{session_id}", "patch"): webrtc.fragment_body(engine.settings.webrtc_max_offer_bytes),
     })
     return app

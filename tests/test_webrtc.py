@@ -1,0 +1,365 @@
+"""WebRTC egress (issue 29): WHEP signalling behind keys, frames on a video track driven from a data channel,
+ICE on 127.0.0.1 only, and sessions freed when the peer goes (DELETE, a vanished peer, a drain).
+
+Every connection here is on loopback: the servers gather on 127.0.0.1 only (webrtc_host_addresses), and so does
+the client in this process (the override is the process's)."""
+
+from __future__ import annotations
+
+import asyncio
+import re
+import time
+
+import httpx
+import numpy as np
+import pytest
+from conftest import LiveServer
+
+from service.errors import InvalidArgument
+from service.webrtc import ice
+from service.webrtc.client import WhepClient, match_indices
+from service.webrtc.sdp import check_offer, parse_codecs, parse_fragment
+
+LOOPBACK = {"webrtc_host_addresses": ["127.0.0.1"], "webrtc_peer_timeout_seconds": 2.0,
+            "webrtc_connect_seconds": 3.0, "webrtc_turn_urls": ["turn:127.0.0.1:3478?transport=udp"],
+            "webrtc_turn_secret": "test-secret"}
+
+
+def candidates(sdp: str) -> list[str]:
+    """The connection address of every a=candidate line."""
+    return [line.split()[4] for line in sdp.splitlines() if line.startswith("a=candidate:")]
+
+
+def gauge(server: LiveServer) -> float:
+    return server.engine.metrics.webrtc_sessions._value.get()
+
+
+def wait_until(condition, seconds: float) -> bool:
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline:
+        if condition():
+            return True
+        time.sleep(0.05)
+    return condition()
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory):
+    s = LiveServer(tmp_path_factory.mktemp("webrtc"), auth="keys", **LOOPBACK)
+    yield s
+    s.stop()
+
+
+async def offer_sdp() -> str:
+    from aiortc import RTCPeerConnection
+
+    pc = RTCPeerConnection()
+    pc.addTransceiver("video", direction="recvonly")
+    pc.createDataChannel("blendsplat")
+    await pc.setLocalDescription(await pc.createOffer())
+    sdp = pc.localDescription.sdp
+    await pc.close()
+    return sdp
+
+
+# ------------------------------------------------------------------------------------------ without a server
+def test_the_host_address_override_gathers_and_offers_only_those_addresses():
+    import aioice.ice
+
+    try:
+        ice.use_host_addresses(["127.0.0.1"])
+        assert aioice.ice.get_host_addresses(use_ipv4=True, use_ipv6=True) == ["127.0.0.1"]
+        sdp = asyncio.run(offer_sdp())
+        assert candidates(sdp) and set(candidates(sdp)) == {"127.0.0.1"}
+        assert ice.remote_allowed("127.0.0.1") and not ice.remote_allowed("10.0.0.7")
+        assert not ice.remote_allowed("abcd.local")  # an mDNS name is never resolved then
+        with pytest.raises(ValueError):
+            ice.use_host_addresses(["eth0"])
+    finally:
+        ice.use_host_addresses(["127.0.0.1"])  # every test here stays on loopback
+
+
+def test_offers_are_checked_naming_the_sdp_problem_and_foreign_candidates_are_dropped():
+    good = asyncio.run(offer_sdp())
+    assert check_offer(good.encode(), ["H264", "VP8"]).startswith("v=0\r\n")
+    bad = {b"not an sdp offer": "v=0", b"\xff\xfe": "UTF-8",
+           good.replace("m=application", "m=text").encode(): "data channel",
+           re.sub(r"a=rtpmap:\d+ (H264|VP8)/", "a=rtpmap:99 AV1/", good).encode(): "codec",
+           good.replace("a=recvonly", "a=sendonly").encode(): "sendonly"}
+    for body, words in bad.items():
+        with pytest.raises(InvalidArgument) as e:
+            check_offer(body, ["H264", "VP8"])
+        assert "SDP" in e.value.detail and words in e.value.detail and e.value.field == "sdp"
+    foreign = good.replace("a=end-of-candidates", "a=candidate:1 1 udp 2130706431 192.0.2.7 5000 typ host\r\n"
+                                                   "a=end-of-candidates")
+    assert "192.0.2.7" not in check_offer(foreign.encode(), ["VP8"])
+    found, end = parse_fragment(b"a=mid:0\r\na=candidate:1 1 udp 1 192.0.2.7 9 typ host\r\n"
+                                b"a=candidate:2 1 udp 1 127.0.0.1 9 typ host\r\na=end-of-candidates\r\n")
+    assert found == [("0", "candidate:2 1 udp 1 127.0.0.1 9 typ host")] and end
+    assert parse_codecs("vp8, h264") == ["VP8", "H264"]
+    with pytest.raises(InvalidArgument):
+        parse_codecs("av1")
+
+
+def test_turn_credentials_are_corturns_use_auth_secret_scheme():
+    import base64
+    import hashlib
+    import hmac
+
+    username, credential = ice.turn_credentials("s3cret", 600, now=1000)
+    assert username == "1600:blendsplat"
+    assert credential == base64.b64encode(hmac.new(b"s3cret", b"1600:blendsplat", hashlib.sha1).digest()).decode()
+    links = ice.link_headers(["stun:127.0.0.1:3478"], ["turn:127.0.0.1:3478"], "s3cret", 600)
+    assert links[0] == '<stun:127.0.0.1:3478>; rel="ice-server"'
+    assert links[1].startswith('<turn:127.0.0.1:3478>; rel="ice-server"; username="') and "credential=" in links[1]
+
+
+# --------------------------------------------------------------------------------------------- on a server
+def test_signalling_needs_a_key_and_refuses_a_bad_offer_naming_the_sdp(server):
+    url = f"{server.http_url}/v1/webrtc?avatar=demo"
+    sdp = {"Content-Type": "application/sdp"}
+    assert httpx.post(url, content="v=0", headers=sdp).status_code == 401
+    r = httpx.post(url, content="not an sdp offer", headers={**sdp, **server.headers})
+    assert r.status_code == 422 and "SDP" in r.json()["error"]["message"] and r.json()["error"]["field"] == "sdp"
+    r = httpx.post(url, content="v=0" + "a" * 40000, headers={**sdp, **server.headers})
+    assert r.status_code == 413
+    assert httpx.delete(f"{server.http_url}/v1/webrtc/{'0' * 32}", headers=server.headers).status_code == 404
+    assert gauge(server) == 0
+
+
+async def _drive(server: LiveServer, codec: str) -> tuple[WhepClient, list, str]:
+    client = WhepClient(server.http_url, "demo", size=128, codecs=codec, api_key=server.api_key, keep=lambda n: True)
+    await client.open()
+    names = client.header["expressionNames"]
+    for index in range(1, 31):  # ten neutral frames, then the first expression fully on
+        coefficients = [0.0] * len(names)
+        if index > 10:
+            coefficients[0] = 1.0
+        client.send({"frame": {"index": index, "coefficients": coefficients}})
+        await asyncio.sleep(1 / 30)
+    await asyncio.sleep(1.0)
+    return client, match_indices(client.frames, client.timings), client.location
+
+
+@pytest.mark.parametrize("codec", ["h264", "vp8"])
+def test_a_python_client_gets_frames_that_change_with_the_expression_and_delete_frees_it(server, codec):
+    async def run():
+        async with httpx.AsyncClient() as http:
+            r = await http.post(f"{server.http_url}/v1/webrtc?avatar=demo&size=64&codecs={codec}",
+                                content=await offer_sdp(), headers={"Content-Type": "application/sdp",
+                                                                    **server.headers})
+            assert r.status_code == 201 and r.headers["content-type"].startswith("application/sdp")
+            assert set(candidates(r.text)) == {"127.0.0.1"}  # the override: no other address is offered
+            assert re.match(r"^/v1/webrtc/[0-9a-f]{32}$", r.headers["location"])
+            assert any('rel="ice-server"' in link and "credential=" in link for link in r.headers.get_list("link"))
+            await http.delete(server.http_url + r.headers["location"], headers=server.headers)
+        client, indices, location = await _drive(server, codec)
+        assert gauge(server) == 1
+        assert not client.errors and client.timings
+        assert client.timings[-1]["video"]["codec"].lower() == codec
+        shown = {i: f.image for f, i in zip(client.frames, indices, strict=True) if i and f.image is not None}
+        neutral = [image for i, image in shown.items() if i <= 10]
+        smiling = [image for i, image in shown.items() if i >= 20]
+        assert neutral and smiling and neutral[-1].shape == (128, 128, 3)
+        assert neutral[-1].std() > 5  # a head on a background, not a blank frame
+        assert np.abs(neutral[-1].astype(float) - smiling[-1].astype(float)).mean() > 0.5
+        await client.close()  # DELETE, then the peer connection's close
+    asyncio.run(run())
+    assert wait_until(lambda: gauge(server) == 0, 3.0)
+
+
+def test_a_vanished_peer_is_closed_and_freed_within_the_peer_timeout(server):
+    async def run():
+        client, _, _ = await _drive(server, "vp8")
+        assert gauge(server) == 1
+        # the client's transport vanishes: its sockets close, no DTLS close, no RTCP, no data-channel message
+        for transceiver in client.pc.getTransceivers():
+            connection = transceiver.receiver.transport.transport._connection
+            for protocol in connection._protocols:
+                protocol.transport.close()
+        t0 = time.monotonic()
+        while gauge(server) and time.monotonic() - t0 < 8:
+            await asyncio.sleep(0.1)
+        await client.close(delete=False)
+        return time.monotonic() - t0
+    elapsed = asyncio.run(run())
+    assert gauge(server) == 0 and elapsed < 2.0 + 3.0  # the peer timeout, and a watch interval or two
+
+
+def test_a_peer_that_never_connects_is_freed_within_the_connect_time(server):
+    r = httpx.post(f"{server.http_url}/v1/webrtc?avatar=demo&size=64", content=asyncio.run(offer_sdp()),
+                   headers={"Content-Type": "application/sdp", **server.headers})
+    assert r.status_code == 201 and gauge(server) == 1
+    assert wait_until(lambda: gauge(server) == 0, 3.0 + 2.0)
+
+
+def test_a_drain_sends_the_final_status_on_the_data_channel_then_closes(tmp_path):
+    s = LiveServer(tmp_path / "data", **LOOPBACK)
+    try:
+        async def run():
+            client, _, _ = await _drive(s, "vp8")
+            stop = asyncio.get_running_loop().run_in_executor(None, s.stop)
+            status = await client.wait_status(10.0)
+            await stop
+            await client.close(delete=False)
+            return status
+        status = asyncio.run(run())
+        assert status is not None and status["code"] == "UNAVAILABLE" and "shutting down" in status["message"]
+        assert gauge(s) == 0
+    finally:
+        if s.thread.is_alive() and not s.service.stopped.is_set():
+            s.stop()
+
+
+# ------------------------------------------------------------------------------------------- in Chromium
+VIDEO_SUM = """
+const v = document.getElementById('video');
+if (!v.videoWidth) return null;
+const c = document.createElement('canvas');
+c.width = v.videoWidth; c.height = v.videoHeight;
+const ctx = c.getContext('2d');
+ctx.drawImage(v, 0, 0);
+const d = ctx.getImageData(0, 0, c.width, c.height).data;
+let sum = 0, sq = 0;
+for (let i = 0; i < d.length; i += 4) { const g = d[i] + d[i + 1] + d[i + 2]; sum += g; sq += g * g; }
+const n = d.length / 4;
+return [sum / n, Math.sqrt(sq / n - (sum / n) ** 2), c.width, c.height];
+"""
+
+
+@pytest.fixture
+def webrtc_driver(tmp_path):
+    """Headless Debian Chromium that may use loopback candidates and shows real host addresses (no mDNS names);
+    skipped without chromium and chromedriver, like the other page tests."""
+    from conftest import CHROMEDRIVER, CHROMIUM
+    from selenium import webdriver
+    from selenium.webdriver.chrome.service import Service
+
+    missing = [str(p) for p in (CHROMIUM, CHROMEDRIVER) if not p.exists()]
+    if missing:
+        pytest.skip(f"{', '.join(missing)} missing: apt-get update && apt-get install -y chromium chromium-driver")
+    options = webdriver.ChromeOptions()
+    options.binary_location = str(CHROMIUM)
+    for arg in ("--headless=new", "--no-sandbox", "--disable-gpu", "--window-size=1280,1000", "--no-first-run",
+                "--disable-background-networking", "--disable-component-update", "--disable-sync",
+                "--allow-loopback-in-peer-connection", "--disable-features=WebRtcHideLocalIpsWithMdns",
+                "--autoplay-policy=no-user-gesture-required", f"--user-data-dir={tmp_path / 'profile'}"):
+        options.add_argument(arg)
+    options.set_capability("goog:loggingPrefs", {"browser": "ALL"})
+    drv = webdriver.Chrome(service=Service(executable_path=str(CHROMEDRIVER)), options=options)
+    try:
+        yield drv
+    finally:
+        drv.quit()
+
+
+@pytest.mark.slow
+def test_chromium_shows_the_avatar_as_a_webrtc_track_driven_by_the_demo_sliders(server, webrtc_driver):
+    from selenium.webdriver.common.by import By
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    drv = webrtc_driver
+    drv.execute_cdp_cmd("Page.addScriptToEvaluateOnNewDocument",
+                        {"source": f"sessionStorage.setItem('blendsplat.apiKey', '{server.api_key}');"})
+    drv.get(f"{server.http_url}/demo?transport=webrtc&avatar=demo")
+
+    def wait(what, condition, seconds=60):
+        try:
+            return WebDriverWait(drv, seconds, poll_frequency=0.1).until(condition)
+        except Exception:  # noqa: BLE001 - say what the page shows
+            console = [e["message"] for e in drv.get_log("browser")]
+            pytest.fail(f"waiting for {what}: #status={drv.find_element(By.ID, 'status').text!r} "
+                        f"#stats={drv.find_element(By.ID, 'stats').text!r} console={console[-5:]}")
+
+    frames = "return parseInt(document.body.dataset.framesReceived || '0', 10);"
+    wait("30 video frames", lambda d: d.execute_script(frames) >= 30)
+    wait("a latency read-out", lambda d: d.execute_script("return document.body.dataset.latencyP50 || ''"))
+    latency = float(drv.execute_script("return document.body.dataset.latencyP50"))
+    assert 0 < latency < 250, latency  # on a loaded test machine; `bench webrtc` measures the goal
+    assert "latency p50" in drv.find_element(By.ID, "stats").text
+    box = drv.find_element(By.ID, "idle")
+    if box.is_selected():
+        box.click()  # frames from the sliders only
+    time.sleep(1.0)
+    before = wait("a decoded frame", lambda d: d.execute_script(VIDEO_SUM))
+    assert before[2:] == [512, 512] and before[1] > 5  # a head on a background
+    slider = drv.find_element(By.CSS_SELECTOR, "input[data-expression]")
+    drv.execute_script("arguments[0].value = arguments[0].max;"
+                       "arguments[0].dispatchEvent(new Event('input', {bubbles: true}));", slider)
+    wait("the video to change with the expression",
+         lambda d: abs((d.execute_script(VIDEO_SUM) or before)[0] - before[0]) > 0.5, 20)
+    assert gauge(server) == 1
+    drv.get("about:blank")  # the page goes: its peer vanishes (or says goodbye); the session is freed
+    assert wait_until(lambda: gauge(server) == 0, 8.0)
+
+
+# ---------------------------------------------------------------------------------------------- through TURN
+def _free_udp_port() -> int:
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture
+def coturn(tmp_path):
+    """coturn (Debian's turnserver) on 127.0.0.1 only, use-auth-secret, loopback peers allowed; skipped without it."""
+    import shutil
+    import subprocess
+
+    binary = shutil.which("turnserver")
+    if binary is None:
+        pytest.skip("coturn is not installed: apt-get install -y coturn")
+    port, secret = _free_udp_port(), "coturn-test-secret"
+    low = 49160 + port % 1000 * 10
+    process = subprocess.Popen(
+        [binary, "-n", "--listening-ip=127.0.0.1", "--relay-ip=127.0.0.1", f"--listening-port={port}",
+         f"--min-port={low}", f"--max-port={low + 9}", "--use-auth-secret", f"--static-auth-secret={secret}",
+         "--realm=blendsplat", "--allow-loopback-peers", "--no-cli", "--no-tls", "--no-dtls", "--fingerprint",
+         f"--pidfile={tmp_path / 'turnserver.pid'}", "--log-file=stdout", "--simple-log"],
+        stdout=(tmp_path / "turnserver.log").open("w"), stderr=subprocess.STDOUT)
+    try:
+        time.sleep(0.5)
+        if process.poll() is not None:
+            pytest.fail(f"turnserver exited: {(tmp_path / 'turnserver.log').read_text()[-2000:]}")
+        yield f"turn:127.0.0.1:{port}?transport=udp", secret
+    finally:
+        process.terminate()
+        try:
+            process.wait(5)
+        except subprocess.TimeoutExpired:
+            process.kill()
+
+
+@pytest.mark.slow
+def test_a_relay_only_client_streams_through_coturn_on_loopback(tmp_path, coturn):
+    from service.webrtc.client import ice_servers_of
+
+    turn_url, secret = coturn
+    s = LiveServer(tmp_path / "data", **{**LOOPBACK, "webrtc_turn_urls": [turn_url], "webrtc_turn_secret": secret})
+    try:
+        async def run():
+            probe = httpx.post(f"{s.http_url}/v1/webrtc?avatar=demo&size=64", content=await offer_sdp(),
+                               headers={"Content-Type": "application/sdp"})
+            assert probe.status_code == 201
+            servers = ice_servers_of(probe.headers.get_list("link"))
+            httpx.delete(s.http_url + probe.headers["location"])
+            assert servers and servers[0].username.endswith(":blendsplat")
+            client = WhepClient(s.http_url, "demo", size=64, codecs="vp8", ice_servers=servers, relay_only=True)
+            await client.open()
+            for index in range(1, 16):
+                client.send({"frame": {"index": index}})
+                await asyncio.sleep(1 / 30)
+            await asyncio.sleep(1.0)
+            connection = client.pc.getTransceivers()[0].receiver.transport.transport._connection
+            pairs = list(connection._nominated.values())
+            local = {c.type for c in connection.local_candidates}
+            frames = len(client.frames)
+            await client.close()
+            return frames, local, pairs
+        frames, local, pairs = asyncio.run(run())
+        assert local == {"relay"} and pairs and pairs[0].local_candidate.type == "relay"
+        assert frames >= 5
+    finally:
+        s.stop()
