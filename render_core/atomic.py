@@ -2,16 +2,20 @@
 
 Every file the library and the service publish (bundles, face models, reports, checkpoints, uploads) goes through
 :func:`atomic_path` (write to a temporary file in the same folder, then rename) or :func:`publish` (rename a file
-that is already written).
+that is already written). A process killed while writing leaves its temporary file (``.<name>.<16 hex>.tmp``):
+:func:`remove_stale` removes them from a folder whose writer is known to be gone (a resumed training run's).
 """
 
 from __future__ import annotations
 
 import os
+import re
 import secrets
 from collections.abc import Iterator
 from contextlib import contextmanager, suppress
 from pathlib import Path
+
+TEMP_NAME = re.compile(r"^\..+\.[0-9a-f]{16}\.tmp$")  # what atomic_path writes to: .<name>.<16 hex>.tmp
 
 
 def publish(tmp: str | os.PathLike, path: str | os.PathLike, *, mode: int = 0o644) -> Path:
@@ -52,3 +56,20 @@ def atomic_path(path: str | os.PathLike, *, mode: int = 0o644) -> Iterator[Path]
         with suppress(OSError):
             os.unlink(tmp)
         raise
+
+
+def remove_stale(folder: str | os.PathLike) -> list[str]:
+    """Remove the temporary files :func:`atomic_path` left in ``folder`` (not below it) when its process was killed
+    mid-write; the names removed. Only for a folder no live process writes to (the caller knows: e.g. a training
+    run resuming in its own work folder)."""
+    removed = []
+    try:
+        entries = list(os.scandir(folder))
+    except FileNotFoundError:
+        return removed
+    for entry in entries:
+        if TEMP_NAME.match(entry.name) and entry.is_file(follow_symlinks=False):
+            with suppress(FileNotFoundError):
+                os.unlink(entry.path)
+                removed.append(entry.name)
+    return removed

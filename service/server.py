@@ -102,7 +102,8 @@ class Service:
         jobs, uploads = await asyncio.to_thread(open_stores, s)  # the job database (migrated) and the upload folder
         store = BundleStore(s.bundle_dir)
         access = Access(s, KeyStore(jobs.engine), on_limit_failure=self.metrics.limit_failures.inc,
-                        usage=[store.tenant_bytes, uploads.tenant_bytes])
+                        usage=[store.tenant_bytes, uploads.tenant_bytes, jobs.tenant_work_bytes],
+                        files=uploads.tenant_files)  # bytes on disk, from what was recorded when written
         self.training = Training(s, jobs, uploads, access=access, writable=store.writable,
                                  metrics=self.metrics)
         self.engine = engine = Engine(s, self.metrics, access=access, store=store)

@@ -34,6 +34,7 @@ from render_core.bundle import BundleMappingError, read_manifest, validate_bundl
 from render_core.errors import BundleError
 
 from .errors import InvalidArgument, NotFound, PermissionDenied, ResourceExhausted, Unavailable
+from .usage import disk_bytes
 
 ID_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
 SUFFIX = ".bundle"
@@ -235,12 +236,12 @@ class BundleStore:
         return [path.with_name(path.name + RECORD), path.with_name(path.name + OWNER)]
 
     def tenant_bytes(self, tenant: str) -> int:
-        """Bytes of the bundles ``tenant`` owns (its storage quota counts them)."""
+        """Bytes on disk of the bundles ``tenant`` owns (its storage quota counts them: :mod:`service.usage`)."""
         total = 0
         for avatar_id in self.ids():
             if self.owner(avatar_id).tenant == tenant:
                 with contextlib.suppress(OSError):
-                    total += self.path(avatar_id).stat().st_size
+                    total += disk_bytes(self.path(avatar_id).stat())
         return total
 
     def verified(self, path: Path) -> bool:

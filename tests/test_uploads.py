@@ -78,7 +78,10 @@ def test_an_upload_is_published_with_its_record_and_no_archive(store, tmp_path, 
     assert {p.relative_to(folder).as_posix(): p.read_bytes() for p in folder.rglob("*") if p.is_file()} == dataset
     record = json.loads((store.root / upload.id / "upload.json").read_text())
     assert set(record) == {"id", "created_at", "size", "sha256", "frames", "width", "height", "face_model",
-                           "filename", "archive", "tenant"}  # tenant: the owner (service/access/auth.py)
+                           "filename", "archive", "tenant",  # tenant: the owner (service/access/auth.py)
+                           "stored_bytes", "files"}  # what it takes on disk, as extracted (the tenant's quota)
+    assert record["files"] == len(list((store.root / upload.id).rglob("*"))) + 1  # its entries and its folder
+    assert record["stored_bytes"] >= sum(len(b) for b in dataset.values())
     assert record["id"] == upload.id and record["created_at"].endswith("Z")
     assert store.get(upload.id) == upload and store.list() == [upload]
 
@@ -178,7 +181,7 @@ def test_cancelled_while_validating_leaves_nothing(store, archive, monkeypatch):
 def test_delete_removes_the_files(store, archive):
     upload = receive(store, archive.read_bytes())
     keep = receive(store, archive.read_bytes())
-    store.delete(upload.id)
+    store.delete(upload.id)  # a small upload's files are gone when it returns (a large one's soon after)
     assert leftovers(store) == [keep.id]
     for call in (store.get, store.path, store.delete):
         with pytest.raises(NotFound):

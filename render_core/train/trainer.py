@@ -15,7 +15,9 @@ masks and tracking.
 The work folder: ``checkpoints/ckpt_<iteration>.pt`` (the last two; local files of tensors, numbers and strings,
 loaded with ``weights_only=True``), ``log.jsonl`` (a record every ``log_every`` iterations, the first, the last
 and every checkpointed one) and, after :meth:`Trainer.finish`, ``summary.json``, the loss curves and the held-out
-evaluation.
+evaluation. Every file is written beside under a temporary name and renamed into place (:mod:`render_core.atomic`;
+a failed write removes its temporary file); those a killed run left (a torn checkpoint) are removed when the work
+folder is next trained in (:func:`remove_torn`: at :meth:`Trainer.resume` and before a run's first write).
 """
 
 from __future__ import annotations
@@ -36,7 +38,7 @@ import numpy as np
 import torch
 
 from .. import raster
-from ..atomic import atomic_path
+from ..atomic import atomic_path, remove_stale
 from ..bundle import write_bundle
 from ..camera import Cameras
 from ..data import read_dataset
@@ -247,6 +249,15 @@ def _checkpoints(workdir: Path) -> list[Path]:
     return sorted(checkpoint_dir(workdir).glob("ckpt_*.pt"))
 
 
+def remove_torn(workdir: Path) -> list[str]:
+    """Remove the temporary files a killed run left in the work folder and its checkpoints (a checkpoint torn
+    mid-write never became ``ckpt_*.pt``); the names removed."""
+    removed = remove_stale(checkpoint_dir(workdir)) + remove_stale(workdir)
+    if removed:
+        log.info("removed %d temporary file(s) an interrupted run left: %s", len(removed), ", ".join(removed[:5]))
+    return removed
+
+
 def last_checkpoint(workdir: Path) -> Path | None:
     files = _checkpoints(workdir)
     return files[-1] if files else None
@@ -375,6 +386,7 @@ class Trainer:
         if self._disk_ready:
             return
         checkpoint_dir(self.workdir).mkdir(parents=True, exist_ok=True)
+        remove_torn(self.workdir)
         logfile = self.workdir / "log.jsonl"
         if self._resumed:
             _truncate_log(logfile, self._start)
@@ -424,6 +436,7 @@ class Trainer:
         if path is None:
             log.warning("no checkpoint in %s: starting from scratch", checkpoint_dir(self.workdir))
             return False
+        remove_torn(self.workdir)  # a checkpoint torn when the previous run was killed
         state = load_checkpoint(path)
         cfg = Preset(**state["preset"])
         self.preset = cfg if self._iterations is None else cfg.with_(iterations=self._iterations)

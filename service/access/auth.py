@@ -136,10 +136,11 @@ class Access:
     """Authentication, ownership rules, per-key limits and audit for one process (see the module docstring)."""
 
     def __init__(self, settings: Settings, keys: KeyStore | None, on_limit_failure: Callable[[], None] | None = None,
-                 usage: list[Callable[[str], int]] | None = None):
+                 usage: list[Callable[[str], int]] | None = None, files: Callable[[str], int] | None = None):
         """``keys``: the key store (needed with ``auth=keys``); ``on_limit_failure``: called when the shared limits
-        cannot be checked (Redis away); ``usage``: the bytes a tenant stores, one callable per store (the bundle
-        store, the uploads), summed by :meth:`check_quota`."""
+        cannot be checked (Redis away); ``usage``: the bytes a tenant stores on disk, one callable per store (the
+        bundle store, the uploads as extracted, the jobs' work folders), summed by :meth:`check_quota`; ``files``:
+        the files and folders of a tenant's uploads (:meth:`check_stored`)."""
         self.settings = settings
         self.enabled = settings.auth == "keys"
         self.keys = keys
@@ -150,6 +151,7 @@ class Access:
         # per-key limits: shared by the replicas through Redis when redis_url is set (service/access/limits.py)
         self.limits: Limits = limits_for(settings.redis_url, on_limit_failure) if self.enabled else LocalLimits()
         self.usage: list[Callable[[str], int]] = list(usage or [])
+        self.files = files
 
     @classmethod
     def trusted(cls, settings: Settings) -> Access:
@@ -244,17 +246,32 @@ class Access:
             return no_release
         return self.limits.take_stream(principal.key_id, self.settings.key_max_sessions)
 
+    @staticmethod
+    def exempt(principal: Principal) -> bool:
+        """Whether the quota and the file bound spare the caller (admin keys, auth off, the process itself)."""
+        return principal.key_id is None or principal.admin or principal.tenant is None
+
     def check_quota(self, principal: Principal, incoming: int) -> None:
         """ResourceExhausted when the caller's tenant would store more than ``tenant_storage_bytes`` with
-        ``incoming`` more bytes (its bundles and datasets; admin keys are exempt)."""
-        if principal.key_id is None or principal.admin or principal.tenant is None:
+        ``incoming`` more bytes on disk (its bundles, uploads as extracted and jobs' work folders; admin keys are
+        exempt)."""
+        if self.exempt(principal):
             return
         used = sum(source(principal.tenant) for source in self.usage)
-        quota = self.settings.tenant_storage_bytes
-        if used + incoming > quota:
-            raise ResourceExhausted(f"tenant {principal.tenant!r} stores {used} bytes; with {incoming} more it would "
-                                    f"pass its quota of {quota} (delete avatars or uploads first)",
-                                    field="authorization")
+        if used + incoming > self.settings.tenant_storage_bytes:
+            raise over_quota(principal.tenant, used, incoming, self.settings.tenant_storage_bytes)
+
+    def check_stored(self, principal: Principal, stored: int, files: int) -> None:
+        """An upload as it will be kept (``stored`` bytes on disk in ``files`` entries, measured before it is
+        published): the tenant's quota, then its file bound ``tenant_max_files`` (ResourceExhausted)."""
+        self.check_quota(principal, stored)
+        if self.exempt(principal) or self.files is None:
+            return
+        held, limit = self.files(principal.tenant), self.settings.tenant_max_files
+        if held + files > limit:
+            raise ResourceExhausted(f"tenant {principal.tenant!r} holds {held} files in its uploads; with {files} "
+                                    f"more it would pass its bound of {limit} (tenant_max_files; delete uploads "
+                                    "first)", field="authorization")
 
     def admit_upload(self, principal: Principal, incoming: int) -> None:
         """Count an upload against the key's uploads per hour, then check the tenant's quota with ``incoming``
@@ -276,6 +293,13 @@ class Access:
         extra = "".join(f" {k}={v}" for k, v in details.items())
         audit_log.info("%s %s by key=%s tenant=%s%s", action, target, principal.key_id or "-",
                        principal.tenant or "-", extra)
+
+
+def over_quota(tenant: str, used: int, incoming: int, quota: int) -> ResourceExhausted:
+    """The one refusal of the storage quota (uploads, avatars and job submissions; a running job fails with it)."""
+    return ResourceExhausted(f"tenant {tenant!r} stores {used} bytes; with {incoming} more it would pass its quota of "
+                             f"{quota} (tenant_storage_bytes; delete avatars, uploads or jobs first)",
+                             field="authorization")
 
 
 def _principal(key: ApiKey) -> Principal:

@@ -10,9 +10,12 @@ Two backends with one interface (:class:`Limits`), chosen by settings (:func:`li
   not matter):
 
   - a key's streams are leases in a sorted set ``<prefix>streams:<key id>`` scored by their expiry. Taking one
-    drops expired leases, counts, and adds one; this process renews its own every ``lease_seconds / 3``, and a
-    release removes it. A replica that dies without releasing frees its leases ``lease_seconds`` later. A key's
-    single-frame renders in flight are leases the same way, in ``<prefix>renders:<key id>``.
+    drops expired leases, counts, and adds one; this process re-asserts its own every ``renew_seconds`` (5:
+    written again whether or not Redis still has them, and the set's own TTL extended), and a release removes it.
+    A replica that dies without releasing frees its leases ``lease_seconds`` later. A Redis that restarts empty
+    (or fails over to a replica that never saw them) has every open stream counted again within ``renew_seconds``:
+    the replicas holding them write them back. A key's single-frame renders in flight are leases the same way, in
+    ``<prefix>renders:<key id>``.
   - events are members of ``<prefix><what>:<key id>`` scored by their time; older than the window they no
     longer count, and a refusal says when the oldest one leaves the window (``Retry-After``).
 
@@ -136,12 +139,13 @@ redis.call('ZADD', KEYS[1], now + tonumber(ARGV[3]), ARGV[2])
 redis.call('EXPIRE', KEYS[1], math.ceil(tonumber(ARGV[3])) * 2)
 return 1
 """
-# KEYS: lease sets; ARGV[1]: lease seconds, ARGV[2..]: the lease id in KEYS[i - 1]. Extends leases still held.
+# KEYS: lease sets; ARGV[1]: lease seconds, ARGV[2..]: the lease id in KEYS[i - 1]. Re-asserts the leases this
+# process holds: extended, or written back when Redis lost them (a restart, a failover).
 _RENEW = """
 local t = redis.call('TIME')
 local expiry = tonumber(t[1]) + tonumber(t[2]) / 1000000 + tonumber(ARGV[1])
 for i, key in ipairs(KEYS) do
-  redis.call('ZADD', key, 'XX', expiry, ARGV[i + 1])
+  redis.call('ZADD', key, expiry, ARGV[i + 1])
   redis.call('EXPIRE', key, math.ceil(tonumber(ARGV[1])) * 2)
 end
 return #KEYS
@@ -166,18 +170,21 @@ class RedisLimits:
     """Limits shared by every replica through Redis (see the module docstring)."""
 
     def __init__(self, url: str, *, prefix: str = "blendsplat:limits:", lease_seconds: float = 30.0,
-                 timeout: float = 0.5, on_failure: Callable[[], None] | None = None):
+                 renew_seconds: float = 5.0, timeout: float = 0.5, on_failure: Callable[[], None] | None = None):
         import redis  # only deployments that set redis_url need it loaded
 
         self._errors = (redis.RedisError, OSError)
         self.redis = redis.Redis.from_url(url, socket_timeout=timeout, socket_connect_timeout=timeout)
         self.prefix, self.lease_seconds = prefix, lease_seconds
+        self.renew_seconds = min(renew_seconds, lease_seconds / 3)
         self._take_stream = self.redis.register_script(_TAKE_STREAM)
         self._renew = self.redis.register_script(_RENEW)
         self._take_event = self.redis.register_script(_TAKE_EVENT)
         self._on_failure = on_failure
         self._lock = threading.Lock()
         self._leases: dict[str, str] = {}  # lease id -> its set, renewed until released
+        # a renewal and a give-back never overlap: a lease released meanwhile is never written back after its ZREM
+        self._writing = threading.Lock()
         self._warned = 0.0
         self._giving_back = ThreadPoolExecutor(1, thread_name_prefix="limits-release")  # releases never block
         self._stop = threading.Event()
@@ -208,7 +215,8 @@ class RedisLimits:
 
     def _give_back(self, key: str, lease: str) -> None:
         try:
-            self.redis.zrem(key, lease)
+            with self._writing:
+                self.redis.zrem(key, lease)
         except self._errors as e:  # the lease expires by itself
             self._failed(e)
 
@@ -228,14 +236,17 @@ class RedisLimits:
             return len(self._leases)
 
     def renew(self) -> None:
-        """Extend this process's leases (the renewal thread calls it every ``lease_seconds / 3``)."""
-        with self._lock:
-            leases = list(self._leases.items())
-        if leases:
-            self._renew(keys=[key for _, key in leases], args=[self.lease_seconds, *(lease for lease, _ in leases)])
+        """Re-assert this process's leases: extended, or written back when Redis lost them (the renewal thread
+        calls it every ``renew_seconds``)."""
+        with self._writing:
+            with self._lock:  # read under the write lock: a lease released before this is not written back
+                leases = list(self._leases.items())
+            if leases:
+                self._renew(keys=[key for _, key in leases],
+                            args=[self.lease_seconds, *(lease for lease, _ in leases)])
 
     def _renew_loop(self) -> None:
-        while not self._stop.wait(self.lease_seconds / 3):
+        while not self._stop.wait(self.renew_seconds):
             try:
                 self.renew()
             except self._errors as e:

@@ -91,9 +91,10 @@ jobs = APIRouter(prefix="/v1/jobs", tags=["jobs"])
                 "(BLENDSPLAT_MAX_VIDEO_SECONDS, _SIDE, _FRAMES) without being decoded and kept as it is. A refused "
                 "upload leaves nothing behind.",
     responses={413: {"model": ErrorBody, "description": "larger than BLENDSPLAT_MAX_DATASET_BYTES"},
-               422: {"model": ErrorBody, "description": "a hostile or corrupt archive, an invalid dataset, or a "
-                                                        "video over a limit, too short or not decodable: the "
-                                                        "reason"}},
+               422: {"model": ErrorBody, "description": "a hostile or corrupt archive (an extraction over "
+                                                        "BLENDSPLAT_MAX_EXTRACTION_RATIO times the archive: reason "
+                                                        "bomb), an invalid dataset, or a video over a limit, too "
+                                                        "short or not decodable: the reason"}},
     openapi_extra={"requestBody": {"required": True, "content": {"multipart/form-data": {"schema": {
         "type": "object", "required": ["file"],
         "properties": {"file": {"type": "string", "format": "binary"}}}}}}})
@@ -109,8 +110,10 @@ async def create_upload(request: Request, response: Response, principal: Caller(
         await form.start()
         # The file part goes through the intake: spooled off the loop, then the tenant's quota on what arrived.
         spool = functools.partial(training.intake.receive, principal, limit=limit, field="file", admitted=True)
+        # What it stores, extracted, before it is published: the tenant's quota and file bound (nothing kept if not)
         upload = await training.uploads.receive(form.chunks(), max_bytes=limit, filename=form.filename,
-                                                tenant=principal.tenant, spool=spool)
+                                                tenant=principal.tenant, spool=spool,
+                                                admit=functools.partial(training.admit_stored, principal))
     except (BodyTooLarge, ArchiveError, InvalidDataset, VideoError) as exc:
         if metrics is not None:
             kind = ("too_large" if isinstance(exc, BodyTooLarge) else "archive" if isinstance(exc, ArchiveError)

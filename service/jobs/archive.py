@@ -8,7 +8,9 @@ name. Every member is checked **before anything is written**:
 - types: regular files and folders only (symbolic and hard links, devices, FIFOs, sparse files, encrypted zip
   members are refused);
 - sizes: member count, each member's size, the total, and the compression ratio (total uncompressed bytes over the
-  archive's bytes; for zip also per member) under :class:`ArchiveLimits`;
+  archive's bytes; for zip also per member) under :class:`ArchiveLimits`; the extraction ratio (what the members
+  would take on disk, each file rounded up to whole blocks, over the archive's bytes: ``max_extraction_ratio``), so
+  that neither a stream of zeros nor a swarm of tiny files can turn a small archive into a large extraction;
 - integrity: a corrupt or truncated archive is refused with the reason (a gzip stream is decompressed to its end,
   so its CRC is checked and data hidden after the tar's end-of-archive marker counts; zip CRCs are checked as
   members are written).
@@ -36,6 +38,7 @@ import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
+from ..usage import BLOCK, estimate
 from .archive_readers import CHUNK, REASONS, ArchiveError, ArchiveLimits, detect_kind, open_reader
 
 __all__ = ["REASONS", "ArchiveError", "ArchiveInfo", "ArchiveLimits", "Member", "detect_kind", "extract_archive",
@@ -136,8 +139,9 @@ def _check(reader, limits: ArchiveLimits) -> tuple[ArchiveInfo, list[tuple[Membe
     files: set[tuple[str, ...]] = set()
     dirs: set[tuple[str, ...]] = set()
     explicit_dirs: set[tuple[str, ...]] = set()
-    total = 0
+    total = stored = 0  # the members' bytes; what they would take on disk (whole blocks: service/usage.py)
     bomb_at = max(limits.ratio_grace_bytes, limits.max_ratio * reader.archive_bytes)
+    stored_at = max(limits.ratio_grace_bytes, limits.max_extraction_ratio * reader.archive_bytes)
     for count, e in enumerate(reader.entries(), 1):
         if count > limits.max_members:
             raise ArchiveError(f"the archive holds more than {limits.max_members} members", reason="too_many",
@@ -180,6 +184,11 @@ def _check(reader, limits: ArchiveLimits) -> tuple[ArchiveInfo, list[tuple[Membe
                                    f"archive byte ({total} from {reader.archive_bytes})", reason="bomb",
                                    member=e.raw)
             files.add(parts)
+        stored += estimate(e.size) if e.kind != "dir" else BLOCK
+        if stored > stored_at:
+            raise ArchiveError(f"a decompression bomb: its files would take more than {limits.max_extraction_ratio:g} "
+                               f"bytes on disk per archive byte ({stored} from {reader.archive_bytes}; "
+                               "max_extraction_ratio)", reason="bomb", member=e.raw)
         for i in range(1, len(parts)):
             if parts[:i] in files:
                 raise ArchiveError("a member inside a path that is a file", reason="duplicate", member=e.raw)

@@ -59,6 +59,7 @@ class ArchiveLimits:
     max_total_bytes: int = 20 << 30  # all members' data, uncompressed
     max_member_bytes: int = 4 << 30  # one member's data, uncompressed
     max_ratio: float = 200.0  # uncompressed bytes per archive byte (whole archive; per member for zip)
+    max_extraction_ratio: float = 50.0  # bytes on disk (whole blocks per file: service/usage.py) per archive byte
     ratio_grace_bytes: int = 16 << 20  # the ratio is not enforced while the uncompressed bytes stay below this
     max_path_chars: int = 1024
     max_depth: int = 32  # path components
@@ -67,8 +68,9 @@ class ArchiveLimits:
         for name in ("max_members", "max_total_bytes", "max_member_bytes", "max_path_chars", "max_depth"):
             if not isinstance(getattr(self, name), int) or getattr(self, name) < 1:
                 raise ValueError(f"ArchiveLimits.{name} must be a positive integer, got {getattr(self, name)!r}")
-        if not self.max_ratio >= 1:
-            raise ValueError(f"ArchiveLimits.max_ratio must be at least 1, got {self.max_ratio!r}")
+        for name in ("max_ratio", "max_extraction_ratio"):
+            if not getattr(self, name) >= 1:
+                raise ValueError(f"ArchiveLimits.{name} must be at least 1, got {getattr(self, name)!r}")
         if not isinstance(self.ratio_grace_bytes, int) or self.ratio_grace_bytes < 0:
             raise ValueError(f"ArchiveLimits.ratio_grace_bytes must be >= 0, got {self.ratio_grace_bytes!r}")
 

@@ -71,6 +71,8 @@ class JobRecord(Base):
     heartbeat_at: Mapped[datetime | None]
     cancel_requested: Mapped[bool] = mapped_column(Boolean, default=False)
     checkpoint_path: Mapped[str | None] = mapped_column(Text)
+    # bytes on disk of its work folder as the worker last measured it (service/usage.py): the tenant's quota
+    work_bytes: Mapped[int | None] = mapped_column(BigInteger)
     # the latest progress report
     iteration: Mapped[int | None] = mapped_column(Integer)
     total_iterations: Mapped[int | None] = mapped_column(Integer)
@@ -174,6 +176,7 @@ class Job:
     started_at: datetime | None
     finished_at: datetime | None
     updated_at: datetime
+    work_bytes: int | None = None  # its work folder on disk, as last measured (None: never measured)
 
     @property
     def finished(self) -> bool:

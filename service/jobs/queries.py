@@ -1,4 +1,5 @@
-"""Reading the job store: one job, a page of jobs (keyset pagination), the counts by state, a job's events.
+"""Reading the job store: one job, a page of jobs (keyset pagination), the counts by state, a job's events, the job an
+idempotency key made, and a tenant's work folders' bytes (its storage quota).
 
 Mixed into :class:`~service.jobs.store.JobStore` (over its read sessions); the writes are the store's own.
 """
@@ -46,6 +47,20 @@ class JobQueries:
         more = len(records) > limit
         records = records[:limit]
         return [Job.of(r) for r in records], (encode_cursor(records[-1]) if more else None)
+
+    def by_idempotency_key(self, tenant: str | None, key: str) -> Job | None:
+        """The job ``tenant`` submitted with the idempotency key ``key``, if any (a submission with it is a replay
+        or a conflict: it does not count against the key's hourly job allowance)."""
+        with self._db.reads() as session:
+            record = session.scalars(select(JobRecord).where(func.coalesce(JobRecord.tenant, "") == (tenant or ""),
+                                                             JobRecord.idempotency_key == key)).first()
+            return Job.of(record) if record is not None else None
+
+    def tenant_work_bytes(self, tenant: str) -> int:
+        """Bytes on disk of ``tenant``'s jobs' work folders, as their workers last measured them (one query)."""
+        with self._db.reads() as session:
+            return int(session.scalar(select(func.coalesce(func.sum(JobRecord.work_bytes), 0))
+                                      .where(JobRecord.tenant == tenant)) or 0)
 
     def counts_by_state(self) -> dict[JobState, int]:
         """How many jobs are in each state (every state present, zeros included)."""

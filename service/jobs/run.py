@@ -21,6 +21,7 @@ from ..errors import NotFound
 from .artefacts import BUNDLE, PREVIEW, TRUTH, commit_bundle, write_image
 from .attempt import Attempt, error_text
 from .models import EventKind, Job, JobState
+from .quota import WorkQuota
 from .resize import dataset_at
 from .schemas import JobSpec
 from .track import TrackInterrupted, tracked_dataset
@@ -70,6 +71,7 @@ class JobRun:
     def __init__(self, worker: Worker, job: Job, attempt: Attempt):
         self.worker, self.job, self.attempt = worker, job, attempt
         self.workdir = worker.settings.work_dir / job.id
+        self.quota = WorkQuota(worker, job, self.workdir)  # measured at checkpoints and stage ends
 
     def end(self, state: JobState, *, error: str | None = None, result: dict | None = None) -> str:
         """finish() the job as ``state``; ``lost`` when it is no longer ours."""
@@ -119,6 +121,7 @@ class JobRun:
         facemodel = facemodel_file(w.settings.facemodel_dir, face_model)
         if spec.resolution is not None:
             data_dir = self._at_resolution(data_dir, spec.resolution)
+        self.quota.measure()  # a tracked or resampled dataset: StorageQuotaExceeded fails the job
         preset = get_preset(spec.preset)
         if spec.preset_overrides():
             preset = preset.with_(**spec.preset_overrides())
@@ -143,6 +146,7 @@ class JobRun:
                 last_preview[0] = event.iteration
             if event.iteration % every == 0:
                 self._set_checkpoint(last_checkpoint(workdir))
+                self.quota.measure()
 
         outcome = trainer.run(on_progress=on_progress, should_cancel=attempt.should_stop,
                               preview_every=preview_every)
@@ -153,6 +157,7 @@ class JobRun:
         if preview_every and last_preview[0] != trainer.iteration:
             self._write_preview(trainer.iteration, trainer.preview(), trainer)
         summary = trainer.finish(workdir / BUNDLE)
+        self.quota.measure()  # the bundle and the report, before the commit
         attempt.refresh()
         if attempt.lost.is_set() or attempt.cancel.is_set():
             return self._stop_early(trainer.iteration)

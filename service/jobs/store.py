@@ -34,7 +34,7 @@ from collections.abc import Mapping
 from datetime import datetime, timedelta
 from typing import Any
 
-from sqlalchemy import Engine, delete, exists, func, select
+from sqlalchemy import Engine, delete, exists, func, select, update
 from sqlalchemy.exc import IntegrityError, OperationalError
 from sqlalchemy.orm import Session
 
@@ -238,6 +238,13 @@ class JobStore(JobQueries, Outbox):
             record.checkpoint_path = str(path)
             record.updated_at = utcnow()
             return True
+
+    def set_work_bytes(self, job_id: str, work_bytes: int) -> bool:
+        """Record what the job's work folder takes on disk (the worker after measuring it; 0 once it is removed).
+        Not a state change: any caller, any state; False when there is no such job."""
+        with self._write() as session:
+            return session.execute(update(JobRecord).where(JobRecord.id == job_id)
+                                   .values(work_bytes=max(0, int(work_bytes)))).rowcount > 0
 
     def finish(self, job_id: str, worker_id: str, state: JobState | str, *, error: str | None = None,
                result: Mapping[str, Any] | None = None) -> bool:

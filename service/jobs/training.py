@@ -25,6 +25,14 @@ in its work folder ``<settings.work_dir>/<job id>/``, written by the worker (:mo
   ``upload_retention_hours`` (except those a queued or running job still needs) and the work folders of jobs that
   finished more than ``work_retention_hours`` ago (0: never by age); job rows are kept (they hold no image data and
   keep the job's history and result). Orphaned work folders and what killed processes left are removed too.
+
+**Storage quota** (``tenant_storage_bytes``): a tenant's bundles, its uploads as extracted (measured at ingest) and
+its jobs' work folders (measured by the worker at checkpoints and stage ends, recorded on the job's row,
+``work_bytes``) are summed from those records, never by walking the disk. An upload is refused when what it stores
+(or its files, ``tenant_max_files``) would pass the tenant's bounds; a job when the least its work folder will hold
+would; a running job whose work folder takes the tenant past it fails (:mod:`service.jobs.quota`). A job submission
+that replays an idempotency key (or conflicts with it: 409) is answered without counting against the key's jobs
+per hour.
 """
 
 from __future__ import annotations
@@ -46,8 +54,11 @@ from ..errors import FailedPrecondition, NotFound
 from ..intake import UploadIntake
 from ..settings import Settings
 from ..store import Writer
+from ..usage import Usage, tree_usage
+from .archive import ArchiveLimits
 from .artefacts import ARTEFACTS, TRACK_ARTEFACTS, job_writer, why_no_track_artefact
 from .models import Job, JobState
+from .quota import work_estimate
 from .schemas import JobLinks, JobOut, JobSpec, Progress, WebhookOut
 from .store import JobStore
 from .uploads import Upload, UploadStore
@@ -71,12 +82,15 @@ def open_stores(settings: Settings) -> tuple[JobStore, UploadStore]:
     settings.data_dir.mkdir(parents=True, exist_ok=True)
     jobs = JobStore.open(settings.jobs_database_url)
     try:
-        uploads = UploadStore(settings.upload_dir, video_limits=video_limits(
+        uploads = UploadStore(settings.upload_dir, limits=ArchiveLimits(
+            max_extraction_ratio=settings.max_extraction_ratio), video_limits=video_limits(
             settings.max_video_seconds, settings.max_video_side, settings.max_video_frames))
         uploads.ensure()
-        stale = uploads.clean_stale(STALE_GRACE)
+        stale = uploads.clean_stale(STALE_GRACE)  # a dead process's at once; an older version's by age
         if stale:
             log.info("uploads: removed %d leftovers of interrupted uploads", stale)
+        if uploads.empty_trash():
+            log.info("uploads: removing the files of deletions a stopped process left (in the background)")
         Path(settings.work_dir).mkdir(parents=True, exist_ok=True)
     except BaseException:
         jobs.close()
@@ -131,9 +145,11 @@ class Training:
         ``idempotency_key`` with the same request returns the first job; with another, IdempotencyConflict.
         The job is the caller's tenant's: it trains on that tenant's upload, into an avatar id that is free or
         the tenant's own (PermissionDenied otherwise; the worker checks the avatar again when it commits)."""
-        self.upload_for(request.upload_id, principal)  # NotFound naming upload_id; PermissionDenied
+        upload = self.upload_for(request.upload_id, principal)  # NotFound naming upload_id; PermissionDenied
         self.writable(request.avatar_id, job_writer(principal.tenant))  # the rule the worker's commit applies
-        self.access.count_job(principal)
+        if idempotency_key is None or self.jobs.by_idempotency_key(principal.tenant, idempotency_key) is None:
+            self.access.check_quota(principal, work_estimate(upload, request.resolution))
+            self.access.count_job(principal)  # a replay or a 409 is not another job: not counted
         before = datetime.now(UTC)
         job = self.jobs.submit(request.stored(), tenant=principal.tenant, idempotency_key=idempotency_key,
                                max_attempts=self.settings.job_max_attempts)
@@ -144,6 +160,11 @@ class Training:
 
     def work_folder(self, job_id: str) -> Path:
         return self.work_root / job_id
+
+    def admit_stored(self, principal: Principal, used: Usage) -> None:
+        """An upload as it will be kept, before it is published: the tenant's quota and file bound (the upload
+        store's ``admit``)."""
+        self.access.check_stored(principal, used.bytes, used.files)
 
     def job_out(self, job: Job) -> JobOut:
         base = f"/v1/jobs/{job.id}"
@@ -296,6 +317,7 @@ class Training:
                         continue
                     uploads.append(upload_id)
         stale = self.uploads.clean_stale(STALE_GRACE)
+        self.uploads.empty_trash()
         work: list[str] = []
         work_cutoff = now - timedelta(hours=s.work_retention_hours) if s.work_retention_hours > 0 else None
         for job_id in self._work_folder_ids():
@@ -309,6 +331,8 @@ class Training:
             if work_cutoff is not None and job.finished and job.finished_at is not None \
                     and job.finished_at < work_cutoff and self._remove_work(job_id):
                 work.append(job_id)
+            elif job.work_bytes is None:  # written before the quota counted work folders: measured once
+                self.jobs.set_work_bytes(job_id, tree_usage(self.work_folder(job_id)).bytes)
         stale += self._clean_work_leftovers()
         if self.metrics is not None:
             self.metrics.retention_deleted.labels("upload").inc(len(uploads))
@@ -339,6 +363,7 @@ class Training:
         except FileNotFoundError:
             return False
         shutil.rmtree(doomed, ignore_errors=True)
+        self.jobs.set_work_bytes(job_id, 0)  # no longer stored (a deleted job's row is gone: nothing to do)
         return True
 
     def _clean_work_leftovers(self) -> int:

@@ -7,7 +7,8 @@ then, in a worker thread, checked and extracted (:mod:`service.jobs.archive`), v
 
     <root>/<upload_id>/dataset/      the dataset folder (what training reads)
     <root>/<upload_id>/upload.json   id, created_at, size and sha256 of the archive, frames, width, height,
-                                     face_model, the original file name, the archive kind
+                                     face_model, the original file name, the archive kind, and what the upload
+                                     takes on disk (stored_bytes) in how many entries (files)
 
 A **video** (recognised by its first bytes, whatever its name: :func:`service.jobs.video.sniff_video`) is kept as
 the file itself, probed for the limits without decoding it (:func:`service.jobs.video.probe_upload`: refused with a
@@ -21,8 +22,17 @@ short, or not decodable); the job that trains on it tracks it first (:mod:`servi
 The archive itself is deleted once extracted: face video is biometric data, so the store keeps one copy only, and
 :meth:`UploadStore.delete` and :meth:`UploadStore.sweep` (retention) really remove the files. A refused or
 abandoned upload leaves nothing behind. Work in progress lives under names starting with ``.`` (never an id):
-``.incoming-*`` (the archive being received), ``.staging-*`` (extraction and validation), ``.deleting-*`` (a
-deletion in progress); :meth:`UploadStore.clean_stale` removes those a killed process left.
+``.incoming-*`` (the archive being received, and its lock), ``.staging-*`` (extraction and validation),
+``.deleting-*`` (the trash: a deletion's files being removed in the background); :meth:`UploadStore.clean_stale`
+removes what a killed process left, :meth:`UploadStore.empty_trash` what it was deleting
+(:mod:`service.jobs.leftovers`).
+
+**What an upload stores** is measured once, at ingest (:func:`service.usage.tree_usage`), and recorded: the tenant's
+storage quota counts those bytes (:meth:`UploadStore.tenant_bytes`), not the archive's, and its entries count
+against the tenant's file bound (:meth:`UploadStore.tenant_files`). An extraction that takes more than
+``limits.max_extraction_ratio`` times the archive's bytes on disk is refused (:class:`ArchiveError`, reason
+``bomb``); ``admit``, given by the caller, is asked with the measure before the upload is published (the HTTP
+route's refuses past the tenant's quota or file bound), and a refusal keeps nothing.
 """
 
 from __future__ import annotations
@@ -30,107 +40,38 @@ from __future__ import annotations
 import asyncio
 import json
 import os
-import re
 import secrets
 import shutil
 import threading
-import time
 from collections.abc import AsyncIterator, Awaitable, Callable
-from dataclasses import asdict, dataclass
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
 from render_core.data.portable import MANIFEST, validate_dataset
 
 from .. import intake
-from ..errors import InvalidArgument, NotFound
-from .archive import ArchiveLimits, detect_kind, extract_archive
+from ..errors import NotFound
+from ..usage import BLOCK, Usage, tree_usage
+from .archive import ArchiveError, ArchiveLimits, detect_kind, extract_archive
+from .leftovers import Trash, UploadLock, clean_stale
+from .records import (
+    DATASET,
+    ID_PATTERN,
+    RECORD,
+    VIDEO,
+    InvalidDataset,
+    Upload,
+    check_upload_id,
+    display_name,
+    write_record,
+)
 from .video import CONTAINERS, probe_upload, sniff_video, tracker_limits
 
 __all__ = ["ID_PATTERN", "InvalidDataset", "Upload", "UploadStore", "check_upload_id"]
 
 Spool = Callable[[AsyncIterator[bytes], Path], Awaitable[intake.Spooled]]  # body -> the file it is written to
+Admit = Callable[[Usage], None]  # what an upload stores, before it is published: raises to refuse it
 
-ID_PATTERN = re.compile(r"^upl_[A-Za-z0-9_-]{16,64}$")
-RECORD = "upload.json"
-DATASET = "dataset"
-VIDEO = "video"  # a video upload's file: video.<container>
-KINDS = ("dataset", "video")
-_TEMP_PREFIXES = (".incoming-", ".staging-", ".deleting-")
-_MAX_PROBLEMS = 50  # problems kept in an InvalidDataset
-_MAX_PROBLEM_CHARS = 300  # each
-_MAX_MESSAGE_CHARS = 4000
-_MAX_FILENAME_CHARS = 255
-
-
-class InvalidDataset(InvalidArgument):
-    """The archive was well formed but the dataset in it is not valid. ``problems`` lists them (``"field or file:
-    message"``, as ``blendsplat data validate`` prints them; at most 50, each bounded); the message names them
-    all up to a bounded length. ``field`` is ``"file"``."""
-
-    def __init__(self, problems: list[str]):
-        self.count = len(problems)
-        self.problems = [_clip(p, _MAX_PROBLEM_CHARS) for p in problems[:_MAX_PROBLEMS]]
-        text = f"the dataset is not valid ({self.count} problem{'s' if self.count != 1 else ''}): "
-        shown = 0
-        for p in self.problems:
-            if len(text) + len(p) + 2 > _MAX_MESSAGE_CHARS:
-                break
-            text += ("; " if shown else "") + p
-            shown += 1
-        if shown < self.count:
-            text += f"; ... and {self.count - shown} more"
-        super().__init__(text, field="file")
-
-
-@dataclass(frozen=True)
-class Upload:
-    """What the store records about a published upload (``upload.json``)."""
-
-    id: str
-    created_at: datetime  # UTC
-    size: int  # bytes of the archive as received
-    sha256: str  # of the archive as received
-    frames: int
-    width: int
-    height: int
-    face_model: str
-    filename: str | None  # the client's file name (display only: never used as a path)
-    archive: str | None  # "tar", "tar.gz" or "zip"; None for a video
-    tenant: str | None = None  # the owning tenant (service/access/auth.py; None: admin keys only)
-    kind: str = "dataset"  # "dataset" (an archive, extracted) or "video" (kept as the file, tracked by its job)
-    container: str | None = None  # a video's: "mp4", "mov", "webm" or "mkv"
-    duration: float | None = None  # a video's seconds
-    fps: float | None = None  # a video's frame rate
-
-    def to_json(self) -> dict:
-        """The JSON object of ``upload.json`` (``created_at`` as ISO 8601 UTC; a dataset's record as before videos:
-        without ``kind`` and the video fields)."""
-        out = asdict(self)
-        out["created_at"] = self.created_at.isoformat().replace("+00:00", "Z")
-        if self.kind == "dataset":
-            for key in ("kind", "container", "duration", "fps"):
-                out.pop(key)
-        return out
-
-    @classmethod
-    def from_json(cls, data: dict) -> Upload:
-        created = datetime.fromisoformat(data["created_at"].replace("Z", "+00:00"))
-        return cls(id=str(data["id"]), created_at=created, size=int(data["size"]), sha256=str(data["sha256"]),
-                   frames=int(data["frames"]), width=int(data["width"]), height=int(data["height"]),
-                   face_model=str(data["face_model"]), filename=data.get("filename"),
-                   archive=data["archive"] if isinstance(data.get("archive"), str) else None,
-                   tenant=data["tenant"] if isinstance(data.get("tenant"), str) else None,
-                   kind=str(data.get("kind") or "dataset"), container=data.get("container"),
-                   duration=_number(data.get("duration")), fps=_number(data.get("fps")))
-
-
-def check_upload_id(upload_id: str, field: str = "upload_id") -> str:
-    """``upload_id`` if it is an upload id (``upl_`` then 16 to 64 of ``A-Z a-z 0-9 _ -``), else InvalidArgument."""
-    if not isinstance(upload_id, str) or not ID_PATTERN.match(upload_id):
-        raise InvalidArgument(f"{str(upload_id)[:80]!r} is not an upload id ('upl_' followed by 16 to 64 letters, "
-                              "digits, '_' or '-')", field=field)
-    return upload_id
 
 
 class UploadStore:
@@ -143,26 +84,29 @@ class UploadStore:
         self.limits = limits or ArchiveLimits()
         self.video_limits = video_limits if video_limits is not None else tracker_limits()
         self._publish_lock = threading.Lock()
+        self.trash = Trash(self.root)  # deletions: renamed out of sight, removed in the background
 
     def ensure(self) -> None:
         self.root.mkdir(parents=True, exist_ok=True)
 
     # ------------------------------------------------------------------------------------------------- receiving
     async def receive(self, chunks: AsyncIterator[bytes], *, max_bytes: int, filename: str | None = None,
-                      tenant: str | None = None, spool: Spool | None = None) -> Upload:
+                      tenant: str | None = None, spool: Spool | None = None, admit: Admit | None = None) -> Upload:
         """Receive one archive or video from ``chunks``, check (an archive: extract and validate; a video: probe)
         and publish it; return its record.
 
         ``spool`` writes the body to the path it is given (default: :func:`service.intake.spool` bounded by
         ``max_bytes``; the HTTP route passes its :class:`~service.intake.UploadIntake`'s, which also checks the
-        tenant's quota on the bytes that arrived, before anything is extracted).
+        tenant's quota on the bytes that arrived, before anything is extracted); ``admit`` is asked with what the
+        upload takes on disk, extracted, before it is published (module docstring).
         Raises :class:`~service.errors.BodyTooLarge` once more than ``max_bytes`` arrived (the rest is not read),
         :class:`~service.jobs.archive.ArchiveError` for an archive refused (or bytes that are neither an archive nor
         a video), :class:`InvalidDataset` for a dataset that is not valid, :class:`~service.jobs.video.VideoError`
         for a video refused. Whatever happens (also when the caller is cancelled, e.g. the client went away), a refused
         upload leaves nothing in the store."""
         self.ensure()
-        token = secrets.token_hex(8)
+        lock = UploadLock(self.root)  # held until the end: service/jobs/leftovers.py
+        token = lock.acquire()
         incoming = self.root / f".incoming-{token}.tmp"
         cancelled = threading.Event()
         state = {"published": None}
@@ -173,7 +117,7 @@ class UploadStore:
                 spooled = await spool(chunks, incoming)
                 size, sha256 = spooled.size, spooled.sha256
             return await asyncio.to_thread(self._ingest, incoming, token, size, sha256, filename, cancelled, state,
-                                           tenant)
+                                           tenant, admit)
         except asyncio.CancelledError:
             with self._publish_lock:  # the worker thread either published already or never will
                 cancelled.set()
@@ -183,9 +127,11 @@ class UploadStore:
             raise
         finally:
             incoming.unlink(missing_ok=True)
+            lock.release()
 
     def _ingest(self, archive: Path, token: str, size: int, sha256: str, filename: str | None,
-                cancelled: threading.Event, state: dict, tenant: str | None = None) -> Upload:
+                cancelled: threading.Event, state: dict, tenant: str | None = None, admit: Admit | None = None,
+                ) -> Upload:
         """(Worker thread.) Extract and validate (a video: probe), and publish; on any failure or cancellation
         remove the staging folder."""
         staging = self.root / f".staging-{token}"
@@ -193,11 +139,15 @@ class UploadStore:
         try:
             container = sniff_video(archive)
             fields = (self._stage_video(archive, staging, container) if container is not None
-                      else self._stage_dataset(archive, staging))
+                      else self._stage_dataset(archive, staging, size))
+            used = tree_usage(staging) + Usage(BLOCK, 1)  # and the record, written next
+            if admit is not None:
+                admit(used)
             upload_id = "upl_" + secrets.token_urlsafe(16)
             upload = Upload(id=upload_id, created_at=datetime.now(UTC).replace(microsecond=0), size=size,
-                            sha256=sha256, filename=_display_name(filename), tenant=tenant, **fields)
-            _write_record(staging / RECORD, upload)
+                            sha256=sha256, filename=display_name(filename), tenant=tenant,
+                            stored_bytes=used.bytes, files=used.files, **fields)
+            write_record(staging / RECORD, upload)
             os.chmod(staging, 0o755)
             target = self.root / upload_id
             with self._publish_lock:
@@ -211,11 +161,12 @@ class UploadStore:
             shutil.rmtree(staging, ignore_errors=True)
             raise
 
-    def _stage_dataset(self, archive: Path, staging: Path) -> dict:
-        """Extract and validate the archive into ``staging/dataset``; the record's fields."""
+    def _stage_dataset(self, archive: Path, staging: Path, size: int) -> dict:
+        """Extract and validate the archive (``size`` bytes) into ``staging/dataset``; the record's fields."""
         kind = detect_kind(archive)
         root = extract_archive(archive, staging / "extract", self.limits)
         archive.unlink(missing_ok=True)  # one copy only: the extracted dataset
+        self._check_ratio(tree_usage(staging).bytes, size)
         problems = validate_dataset(root)
         if problems:
             raise InvalidDataset(problems)
@@ -225,6 +176,15 @@ class UploadStore:
             shutil.rmtree(staging / "extract")
         return {"frames": int(manifest["frames"]), "width": int(manifest["width"]),
                 "height": int(manifest["height"]), "face_model": str(manifest["face_model"]), "archive": kind}
+
+    def _check_ratio(self, stored: int, size: int) -> None:
+        """The extraction as measured on disk against ``max_extraction_ratio`` (the archive's checks estimated it
+        before writing; a file system with larger blocks is caught here)."""
+        limits = self.limits
+        if stored > max(limits.ratio_grace_bytes, limits.max_extraction_ratio * size):
+            raise ArchiveError(f"a decompression bomb: the extraction takes {stored} bytes on disk, more than "
+                               f"{limits.max_extraction_ratio:g} times the archive's {size} (max_extraction_ratio)",
+                               reason="bomb")
 
     def _stage_video(self, received: Path, staging: Path, container: str) -> dict:
         """Move the video into ``staging/video.<container>`` (one copy: the file itself) and probe it against the
@@ -263,8 +223,12 @@ class UploadStore:
         return self.root / upload_id / f"{VIDEO}.{upload.container}"
 
     def tenant_bytes(self, tenant: str) -> int:
-        """Bytes of the archives and videos ``tenant`` uploaded that are still kept (its storage quota counts them)."""
-        return sum(u.size for u in self.list() if u.tenant == tenant)
+        """Bytes on disk of ``tenant``'s uploads, as extracted (its storage quota counts them): their records'."""
+        return sum(u.usage.bytes for u in self.list() if u.tenant == tenant)
+
+    def tenant_files(self, tenant: str) -> int:
+        """Entries on disk (files and folders) of ``tenant``'s uploads (its file bound counts them)."""
+        return sum(u.usage.files for u in self.list() if u.tenant == tenant)
 
     def list(self) -> list[Upload]:
         """Every published upload, oldest first."""
@@ -289,8 +253,8 @@ class UploadStore:
 
     # ------------------------------------------------------------------------------------------------- deleting
     def delete(self, upload_id: str) -> None:
-        """Delete an upload: its folder is renamed out of sight at once, then its files are removed. NotFound if
-        there is none."""
+        """Delete an upload: its folder is renamed into the trash at once (readers stop seeing it), then its files
+        are removed in the background (:class:`~service.jobs.leftovers.Trash`). NotFound if there is none."""
         self._folder(upload_id)
         if not self._remove(upload_id):
             raise NotFound(f"no upload {upload_id!r}", field="upload_id")
@@ -314,69 +278,25 @@ class UploadStore:
         return removed
 
     def clean_stale(self, older_than: timedelta = timedelta(0)) -> int:
-        """Remove what a killed process left (received archives, staging folders, unfinished deletions) last
-        modified more than ``older_than`` ago; how many entries were removed. Call it at start-up; where several
-        processes share the folder, pass a grace longer than any upload takes, so that another process's upload in
-        progress is spared."""
-        if not self.root.is_dir():
-            return 0
-        cutoff = time.time() - older_than.total_seconds()
-        count = 0
-        for p in self.root.iterdir():
-            if not p.name.startswith(_TEMP_PREFIXES):
-                continue
-            try:
-                if older_than and p.lstat().st_mtime > cutoff:
-                    continue
-                if p.is_dir() and not p.is_symlink():
-                    shutil.rmtree(p)
-                else:
-                    p.unlink()
-                count += 1
-            except FileNotFoundError:
-                continue
-        return count
+        """Remove what killed processes left (received archives, staging folders): at once when the process that
+        received the upload is gone, else (an older version's names) when last modified more than ``older_than``
+        ago; how many entries were removed. Call it at start-up and now and then; an upload another process is
+        receiving is never taken (:func:`service.jobs.leftovers.clean_stale`)."""
+        return clean_stale(self.root, older_than)
+
+    def empty_trash(self) -> int:
+        """Have the trash emptied in the background (deletions a killed process did not finish); how many trees."""
+        return self.trash.empty()
 
     def _remove(self, upload_id: str) -> bool:
-        """Rename the upload's folder to a ``.deleting-`` name (readers stop seeing it at once), then remove it."""
-        doomed = self.root / f".deleting-{upload_id}-{secrets.token_hex(4)}"
-        try:
-            os.rename(self.root / upload_id, doomed)
-        except FileNotFoundError:
-            return False
-        shutil.rmtree(doomed)
-        return True
+        """Move the upload's folder into the trash (readers stop seeing it at once); its files go in the
+        background. False when it was not there."""
+        return self.trash.discard(self.root / upload_id)
 
 
 # --------------------------------------------------------------------------------------------------------- helpers
 class _Abandoned(Exception):
     """The receiving task was cancelled before the upload was published: the worker thread cleans up."""
-
-
-def _number(value) -> float | None:
-    return float(value) if isinstance(value, int | float) and not isinstance(value, bool) else None
-
-
-def _clip(text: str, limit: int) -> str:
-    return text if len(text) <= limit else text[: limit - 3] + "..."
-
-
-def _display_name(filename: str | None) -> str | None:
-    """The client's file name for display: its last path component, printable characters only, bounded."""
-    if not filename:
-        return None
-    base = re.split(r"[/\\]", str(filename))[-1]
-    base = "".join(c for c in base if c.isprintable())
-    return _clip(base, _MAX_FILENAME_CHARS) or None
-
-
-def _write_record(path: Path, upload: Upload) -> None:
-    with open(path, "w", encoding="utf-8") as f:
-        json.dump(upload.to_json(), f, indent=2)
-        f.write("\n")
-        f.flush()
-        os.fsync(f.fileno())
-    os.chmod(path, 0o644)
 
 
 def _fsync_dir(path: Path) -> None:

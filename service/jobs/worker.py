@@ -36,6 +36,9 @@ of it is what enters the bundle store). The REST side serves these files as the 
   interval, not every step; one more report when training ends);
 - ``set_checkpoint(<work folder>/checkpoints/ckpt_<iteration>.pt)`` after each checkpoint;
 - a ``preview`` event ``{"iteration": i, "path": "preview.png"}`` after each preview;
+- the work folder's bytes on disk (the row's ``work_bytes``, the tenant's storage quota counts them) at each
+  checkpoint, at the end of each stage and of the attempt; past the tenant's quota the job fails with
+  ``StorageQuotaExceeded`` (:mod:`service.jobs.quota`);
 - ``log`` events: ``{"resumed_from": iteration, ...}`` when it resumed, the training size, and the reason
   when an attempt ends without finishing the job.
 
@@ -237,6 +240,8 @@ class Worker:
         finally:
             attempt.finish_heartbeats()
             self.metrics.iterations_per_second.set(0)
+        if state != "lost":  # the work folder as this attempt left it (a lost job is someone else's to record)
+            run.quota.measure(check=False)
         seconds = time.monotonic() - started
         self.metrics.jobs_finished.labels(state).inc()
         self.metrics.job_seconds.labels(state).observe(seconds)
