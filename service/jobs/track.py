@@ -148,7 +148,7 @@ def _check(run: JobRun) -> None:
         raise TrackInterrupted(run.job.id)
 
 
-_SAYS = {"landmarks": "finding the face and its landmarks in every frame",
+_SAYS = {"landmarks": "finding the face and its landmarks in every frame ({})",
          "fit": "fitting the head to the landmarks ({})", "write": "writing the dataset: crops, head masks, tracking"}
 
 

@@ -250,7 +250,6 @@ class Peers:
         if s.webrtc_host_addresses:
             ice.use_host_addresses(s.webrtc_host_addresses)
         _cap_bitrate(s.webrtc_max_bitrate)
-        engine.metrics.webrtc_sessions.set(0)
 
     async def open(self, principal: Principal, avatar_id: str, size: int, codecs: str, offer: bytes
                    ) -> tuple[Peer, str]:
