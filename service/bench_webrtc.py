@@ -28,7 +28,6 @@ import os
 import time
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
-from urllib.parse import urlsplit
 
 import numpy as np
 
@@ -136,27 +135,13 @@ def _pct(values: list[float], q: float) -> float | None:
     return round(float(np.percentile(values, q)), 2) if values else None
 
 
-def _use_loopback_if_local(url: str) -> None:
-    """ICE on 127.0.0.1 only when the service is on a loopback address (or BLENDSPLAT_WEBRTC_HOST_ADDRESSES says
-    which addresses): no other address is then offered or ever a target."""
-    env = os.environ.get("BLENDSPLAT_WEBRTC_HOST_ADDRESSES", "")
-    chosen = [a.strip() for a in env.split(",") if a.strip()]
-    from .webrtc import ice
-
-    host = urlsplit(url).hostname or ""
-    if not chosen and host in ("127.0.0.1", "localhost", "::1"):
-        chosen = ["::1"] if host == "::1" else ["127.0.0.1"]
-    if chosen:
-        ice.use_host_addresses(chosen)
-
-
 async def bench_webrtc(url: str, avatar: str, *, seconds: float = 20.0, fps: float = 30.0, size: int = 512,
                        codec: str = "h264", streams: int = 1, warmup: float = 2.0, seed: int = 0,
                        api_key: str | None = None, grpc_target: str | None = None) -> dict:
-    from .webrtc.client import WhepClient, match_indices
+    from .webrtc.client import WhepClient, match_indices, use_loopback_if_local
 
     url = url.rstrip("/")
-    _use_loopback_if_local(url)
+    use_loopback_if_local(url)
     expected = (warmup + seconds) * fps
     step = max(1, int(expected // KEEP_FRAMES))
     runs = [_Run(WhepClient(url, avatar, size=size, codecs=codec, api_key=api_key,

@@ -276,7 +276,45 @@ def build_parser() -> argparse.ArgumentParser:
     from .bench_webrtc import add_parser as add_bench_webrtc
 
     add_bench_webrtc(p.bench_commands)  # `blendsplat bench webrtc` (service/bench_webrtc.py)
+    _add_live_command(p.commands)
     return p
+
+
+def cmd_live(args: argparse.Namespace) -> int:
+    """`blendsplat live`: a driving file played over WebRTC (service/webrtc/live.py); the report as JSON."""
+    import logging
+
+    from .webrtc.client import ClientError
+    from .webrtc.live import DriveError, live
+
+    for name in ("aioice", "aiortc", "httpx"):  # their per-connection lines are not this command's output
+        logging.getLogger(name).setLevel(logging.WARNING)
+    try:
+        report = asyncio.run(live(args.url, args.avatar, args.drive, out=args.out, size=args.size, fps=args.fps,
+                                  codec=args.codec, api_key=args.api_key, loops=args.loops, verify=args.verify))
+    except (ClientError, DriveError, OSError) as e:
+        raise SystemExit(f"blendsplat: error: live: {e}") from None
+    core_cli.emit(report, indent=None if args.json else 2)
+    return 0 if report["frames"] else 1
+
+
+def _add_live_command(commands) -> None:
+    c = commands.add_parser("live", help="play a driving file to an avatar over WebRTC; write what comes back as "
+                                         "an MP4 and report pose-to-frame latency")
+    c.add_argument("--url", required=True, help="the service's HTTP URL, e.g. http://127.0.0.1:8080")
+    c.add_argument("--avatar", required=True, help="avatar id")
+    c.add_argument("--drive", required=True, type=Path, help="driving file (JSON lines, docs/method.md section 11)")
+    c.add_argument("--out", type=Path, default=None, help="write the received video here (MP4, H.264)")
+    c.add_argument("--size", type=int, default=512)
+    c.add_argument("--fps", type=float, default=30.0, help="poses sent per second")
+    c.add_argument("--codec", choices=("h264,vp8", "h264", "vp8"), default="h264,vp8")
+    c.add_argument("--loops", type=int, default=1, help="play the file this many times")
+    c.add_argument("--verify", type=int, default=0, help="afterwards, compare this many received frames with the "
+                                                          "same poses rendered as PNG (psnr_db)")
+    c.add_argument("--json", action="store_true", help="one JSON line")
+    c.add_argument("--api-key", default=os.environ.get("BLENDSPLAT_API_KEY"),
+                   help="API key with the render scope (default: the environment variable BLENDSPLAT_API_KEY)")
+    c.set_defaults(fn=cmd_live)
 
 
 def main(argv: list[str] | None = None) -> int:

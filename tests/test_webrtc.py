@@ -168,6 +168,39 @@ def test_a_python_client_gets_frames_that_change_with_the_expression_and_delete_
     assert wait_until(lambda: gauge(server) == 0, 3.0)
 
 
+def test_blendsplat_live_plays_a_driving_file_and_its_frames_match_the_renderer(server, tmp_path):
+    """`blendsplat live`: a driving file over WebRTC, the received video written as an MP4, latency reported, and
+    the received frames within the PSNR goal (35 dB) of the same poses rendered as PNG."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    import av
+
+    drive = tmp_path / "drive.jsonl"
+    drive.write_text("\n".join(json.dumps({"expression": {"exp_00": k / 20}, "camera": {"yaw": k}})  # the test's demo
+                               for k in range(20)) + "\n")
+    out = tmp_path / "live.mp4"
+    env = {**os.environ, "BLENDSPLAT_API_KEY": server.api_key, "BLENDSPLAT_WEBRTC_HOST_ADDRESSES": "127.0.0.1"}
+    done = subprocess.run([sys.executable, "-m", "service.cli", "live", "--url", server.http_url, "--avatar", "demo",
+                           "--drive", str(drive), "--out", str(out), "--size", "128", "--verify", "5", "--json"],
+                          capture_output=True, text=True, timeout=180, env=env)
+    assert done.returncode == 0, done.stdout[-1500:] + done.stderr[-1500:]
+    report = json.loads(done.stdout.strip().splitlines()[-1])
+    assert report["sent"] == 20 and report["frames"] >= 15 and report["errors"] == 0, report
+    assert report["latency_ms"]["p50"] is not None and report["written"] == report["frames"]
+    assert report["psnr_db"]["frames"] == 5 and report["psnr_db"]["min"] >= 35.0, report
+    with av.open(str(out)) as c:
+        assert sum(1 for _ in c.decode(video=0)) == report["written"]
+    bad = tmp_path / "bad.jsonl"
+    bad.write_text('{"expression": {}}\nnot json\n')
+    done = subprocess.run([sys.executable, "-m", "service.cli", "live", "--url", server.http_url, "--avatar", "demo",
+                           "--drive", str(bad)], capture_output=True, text=True, timeout=60, env=env)
+    assert done.returncode == 1 and "bad.jsonl:2: not JSON" in done.stderr
+    assert wait_until(lambda: gauge(server) == 0, 5.0)
+
+
 def test_a_vanished_peer_is_closed_and_freed_within_the_peer_timeout(server):
     async def run():
         client, _, _ = await _drive(server, "vp8")

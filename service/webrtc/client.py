@@ -189,6 +189,22 @@ class WhepClient:
         await self._http.aclose()
 
 
+def use_loopback_if_local(url: str) -> None:
+    """This client's ICE on 127.0.0.1 only when the service is on a loopback address (or
+    BLENDSPLAT_WEBRTC_HOST_ADDRESSES says which addresses): no other address is then offered or ever a target."""
+    import os
+    from urllib.parse import urlsplit
+
+    from . import ice
+
+    chosen = [a.strip() for a in os.environ.get("BLENDSPLAT_WEBRTC_HOST_ADDRESSES", "").split(",") if a.strip()]
+    host = urlsplit(url).hostname or ""
+    if not chosen and host in ("127.0.0.1", "localhost", "::1"):
+        chosen = ["::1"] if host == "::1" else ["127.0.0.1"]
+    if chosen:
+        ice.use_host_addresses(chosen)
+
+
 def ice_servers_of(links: list[str]) -> list[RTCIceServer]:
     """The ICE servers of WHEP ``Link: <URL>; rel="ice-server"; username="..."; credential="..."`` values."""
     servers = []
