@@ -281,11 +281,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def cmd_live(args: argparse.Namespace) -> int:
-    """`blendsplat live`: a driving file played over WebRTC (service/webrtc/live.py); the report as JSON."""
+    """`blendsplat live`: a driving file played over WebRTC (service/live.py); the report as JSON."""
     import logging
 
+    from .live import DriveError, live
     from .webrtc.client import ClientError
-    from .webrtc.live import DriveError, live
 
     for name in ("aioice", "aiortc", "httpx"):  # their per-connection lines are not this command's output
         logging.getLogger(name).setLevel(logging.WARNING)

@@ -605,7 +605,8 @@ class Engine:
     # ---------------------------------------------------------------------------------------------- avatars
     def _check_read(self, principal: Principal, avatar_id: str, field: str = "id") -> None:
         """PermissionDenied unless ``principal`` may read the avatar (one that does not exist is left to the
-        caller's NotFound)."""
+        caller's NotFound). A session token reads its own avatar only."""
+        principal.check_avatar(avatar_id)
         if principal.admin or not self.store.path(check_id(avatar_id, field)).is_file():
             return
         owner = self.store.owner(avatar_id)
@@ -701,7 +702,8 @@ class Engine:
         """The avatars ``principal`` may read (its tenant's and the public ones; admin keys: all)."""
         out = []
         for avatar_id in self.store.ids():
-            if not principal.admin and not principal.may_read(*astuple(self.store.owner(avatar_id))):
+            if principal.avatar not in (None, avatar_id) or (
+                    not principal.admin and not principal.may_read(*astuple(self.store.owner(avatar_id)))):
                 continue
             try:
                 out.append(self.avatar_info(avatar_id))

@@ -130,6 +130,11 @@ class Settings(BaseSettings):
     max_stream_seconds: float = Field(
         3600.0, gt=0, description="a render stream (gRPC, WebSocket) ends after this long with UNAVAILABLE (the "
                                   "client opens a new one); job event streams have events_max_seconds")
+    token_secret: str | None = Field(
+        None, description="the HMAC key of session tokens (POST /v1/tokens); replicas must share one. Unset: "
+                          "generated on first use into <data_dir>/token.secret (mode 0600)")
+    token_max_seconds: int = Field(3600, ge=1, le=86400, description="the longest a session token may live "
+                                                                     "(POST /v1/tokens, expires_in)")
     key_uploads_per_hour: int = Field(20, ge=1, description="uploads (datasets and bundles) per non-admin key per "
                                                             "hour")
     key_jobs_per_hour: int = Field(20, ge=1, description="training jobs submitted per non-admin key per hour")

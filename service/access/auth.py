@@ -6,7 +6,9 @@ One :class:`Access` per process, held by the :class:`~service.engine.Engine` (bo
   scopes: ``render`` (read and stream avatars), ``avatars:write`` (upload, replace, unload, delete),
   ``jobs`` (datasets and training jobs), ``admin`` (everything, every tenant, keys). HTTP and gRPC read
   ``authorization: Bearer <key>``; the WebSocket reads it from a subprotocol ``bearer.<key>`` offered beside
-  ``blendsplat.v1`` (browsers cannot set headers on a WebSocket; a URL would end up in logs).
+  ``blendsplat.v1`` (browsers cannot set headers on a WebSocket; a URL would end up in logs). A session token
+  (``bst.<payload>.<sig>``, :mod:`service.access.tokens`, minted with a key for a browser) is accepted wherever
+  a key is: render scope only, its minting key's tenant and id, perhaps one avatar (:meth:`Principal.check_avatar`).
 - **Tenants**: avatar ids are global, but every avatar, upload and job has an owning tenant. A key reads what its
   tenant owns plus public avatars (the demo) and changes only what its tenant owns; admin keys see everything.
   Someone else's resource is refused with PERMISSION_DENIED (HTTP 403) naming the resource (ids are global, so a
@@ -48,6 +50,7 @@ from ..settings import Settings
 from ..store import Writer
 from .keys import ADMIN_TENANT, ApiKey, KeyStore, parse_token
 from .limits import Limits, LocalLimits, limits_for, no_release
+from .tokens import TokenInvalid, Tokens, is_token
 
 log = logging.getLogger(__name__)
 audit_log = logging.getLogger("blendsplat.audit")
@@ -68,11 +71,15 @@ class Unauthenticated(ServiceError):
 
 @dataclasses.dataclass(frozen=True)
 class Principal:
-    """The caller: its key id (None: auth is off or an internal call), tenant and scopes."""
+    """The caller: its key id (None: auth is off or an internal call), tenant and scopes. A session token's caller
+    (:mod:`service.access.tokens`) has its minting key's id and tenant, the ``render`` scope, ``token`` set and the
+    one ``avatar`` it may read (None: any its tenant may)."""
 
     key_id: str | None
     tenant: str | None
     scopes: frozenset[str]
+    avatar: str | None = None
+    token: bool = False
 
     @property
     def admin(self) -> bool:
@@ -80,7 +87,9 @@ class Principal:
 
     @property
     def name(self) -> str:
-        return f"key {self.key_id} (tenant {self.tenant})" if self.key_id else "an unauthenticated caller (auth off)"
+        if not self.key_id:
+            return "an unauthenticated caller (auth off)"
+        return f"{'a session token of ' if self.token else ''}key {self.key_id} (tenant {self.tenant})"
 
     def require(self, scope: str) -> Principal:
         if not (self.admin or scope in self.scopes):
@@ -104,6 +113,12 @@ class Principal:
 
     def may_write(self, tenant: str | None) -> bool:
         return self.admin or (tenant is not None and tenant == self.tenant)
+
+    def check_avatar(self, avatar_id: str) -> None:
+        """PermissionDenied when this caller is a session token for another avatar."""
+        if self.avatar is not None and avatar_id != self.avatar:
+            raise PermissionDenied(f"this session token is for avatar {self.avatar!r}, not avatar {avatar_id!r}",
+                                   field="authorization")
 
     def check_read(self, what: str, tenant: str | None, public: bool = False) -> None:
         if not self.may_read(tenant, public):
@@ -151,6 +166,7 @@ class Access:
         # per-key limits: shared by the replicas through Redis when redis_url is set (service/access/limits.py)
         self.limits: Limits = limits_for(settings.redis_url, on_limit_failure) if self.enabled else LocalLimits()
         self.usage: list[Callable[[str], int]] = list(usage or [])
+        self.tokens = Tokens(settings)  # session tokens (service/access/tokens.py): the secret is read on first use
         self.files = files
 
     @classmethod
@@ -199,6 +215,12 @@ class Access:
             return TRUSTED
         if not token:
             raise Unauthenticated("an API key is required (Authorization: Bearer <key>)", field="authorization")
+        claims = None
+        if is_token(token):  # a session token: its signature and expiry on every call, its minting key cached
+            try:
+                claims = self.tokens.verify(token)
+            except TokenInvalid as e:
+                raise Unauthenticated(str(e), field="authorization") from None
         digest = hashlib.sha256(token.encode("utf-8", "replace")).hexdigest()
         now = time.monotonic()
         with self._lock:
@@ -206,10 +228,16 @@ class Access:
         if hit is not None and hit[1] > now:
             return hit[0]
         assert self.keys is not None
-        key = self.keys.verify(token)
-        if key is None:
-            raise Unauthenticated("the API key is not valid (unknown, revoked or malformed)", field="authorization")
-        principal = _principal(key)
+        if claims is not None:
+            if self.keys.inactive({claims.key_id}):
+                raise Unauthenticated("the session token's key was revoked", field="authorization")
+            principal = Principal(claims.key_id, claims.tenant, frozenset({"render"}), claims.avatar, token=True)
+        else:
+            key = self.keys.verify(token)
+            if key is None:
+                raise Unauthenticated("the API key is not valid (unknown, revoked or malformed)",
+                                      field="authorization")
+            principal = _principal(key)
         with self._lock:
             if len(self._cache) > 10_000:
                 self._cache.clear()

@@ -34,7 +34,7 @@ from ..errors import BlendsplatError, BodyRefused, BodyTimeout, ServiceError, ht
 from ..jobs.api import ROUTERS as TRAINING_ROUTERS
 from ..jobs.training import Training
 from ..openapi import document_errors
-from . import adapters, avatars, ops, render, webrtc
+from . import adapters, avatars, ops, render, tokens, webrtc
 
 
 def error_response(exc: BaseException, where: str = "", metrics=None) -> JSONResponse:
@@ -176,7 +176,7 @@ def create_app(engine: Engine, training: Training | None = None) -> FastAPI:
     app.state.problems = {}  # readiness check -> why it fails: a text, or a callable asked then (set by the process)
     app.state.closing = asyncio.Event()  # set by stop_reading_bodies (drain)
     app.state.webrtc = webrtc.Peers(engine)  # WebRTC sessions (service/webrtc/)
-    for module in (avatars, render, adapters, ops, webrtc):
+    for module in (avatars, render, adapters, ops, tokens, webrtc):
         app.include_router(module.router)
     # Swagger UI 5 (it reads OpenAPI 3.1), vendored from the npm package swagger-ui-dist: service/static/swagger/
     app.mount("/static/swagger", StaticFiles(directory=ops.SWAGGER), name="swagger-ui")

@@ -6,9 +6,11 @@ from __future__ import annotations
 
 from typing import Any, Literal
 
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, ConfigDict, Field
 
 from blendsplat.v1 import render_pb2 as pb
+
+from ..store import ID_PATTERN as AVATAR_ID_PATTERN
 
 
 # ------------------------------------------------------------------------------------------------------- avatars
@@ -84,6 +86,27 @@ class AdapterOut(BaseModel):
 
 class AdapterList(BaseModel):
     adapters: list[AdapterOut]
+
+
+# ------------------------------------------------------------------------------------------------ session tokens
+class TokenRequest(BaseModel):
+    """The body of ``POST /v1/tokens``."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    avatar: str | None = Field(None, max_length=128, pattern=AVATAR_ID_PATTERN.pattern,
+                               description="the one avatar the token may read and stream; null: any its tenant may")
+    expires_in: int = Field(600, ge=1, description="seconds the token lives (at most the setting token_max_seconds, "
+                                                   "3600 by default)")
+
+
+class TokenOut(BaseModel):
+    token: str = Field(description="bst.<payload>.<signature>: send it as 'Authorization: Bearer <token>' or as the "
+                                   "WebSocket subprotocol bearer.<token>")
+    expires_at: int = Field(description="unix seconds")
+    scope: Literal["render"]
+    avatar: str | None
+    tenant: str
 
 
 # ---------------------------------------------------------------------------------------------------- operations

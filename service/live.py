@@ -85,7 +85,7 @@ async def live(url: str, avatar: str, drive: str | Path, *, out: str | Path | No
     """Play ``drive`` (``loops`` times) to ``avatar`` over WebRTC (module docstring); the report. ``verify``: that
     many received frames (spread over the run) compared with the same poses rendered by ``POST /v1/render`` as
     PNG afterwards (``psnr_db``: mean and minimum)."""
-    from .client import WhepClient, match_indices, use_loopback_if_local
+    from .webrtc.client import WhepClient, match_indices, use_loopback_if_local
 
     lines = read_drive(drive)
     use_loopback_if_local(url)
