@@ -10,7 +10,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from blendsplat.v1 import render_pb2 as pb
 
-from ..store import ID_PATTERN as AVATAR_ID_PATTERN
+from ..engine import AVATAR_ID_PATTERN
 
 
 # ------------------------------------------------------------------------------------------------------- avatars
