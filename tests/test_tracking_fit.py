@@ -148,3 +148,18 @@ def test_bench_track_reports_the_stage_split_and_the_known_answer():
     assert run["frames_per_second"]["landmarks_and_fit"] > 0 and report["landmarks_and_fit_fps"] > 0
     assert run["known_answer"]["frames"] == 12
     assert 0 <= report["median_vertex_px"] < 10 and 0 <= report["median_head_rotation_deg"] < 15
+
+
+def test_a_known_focal_length_is_used_instead_of_searched(tmp_path):
+    """``--focal``: the focal length the user knows (a phone records it) is the tracking's, not an estimate; a
+    nonsensical one is refused naming ``focal``."""
+    _, video = synth_video(tmp_path, frames=12, size=128, seed=31)
+    cmd = [sys.executable, "-m", "service.cli", "track", str(video), "--crop", "none", "--size", "128", "--json"]
+    done = subprocess.run(cmd + ["--out", str(tmp_path / "out"), "--focal", "250"], capture_output=True, text=True,
+                          timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert json.loads(done.stdout.strip().splitlines()[-1])["focal_px"] == 250.0
+    assert read_dataset(tmp_path / "out").tracking.K[0, 0, 0] == 250.0
+    done = subprocess.run(cmd + ["--out", str(tmp_path / "bad"), "--focal", "-3"], capture_output=True, text=True,
+                          timeout=300)
+    assert done.returncode != 0 and "focal" in done.stderr and not (tmp_path / "bad" / "tracking.npz").exists()

@@ -540,7 +540,7 @@ def cmd_track(args: argparse.Namespace) -> int:
 
 
     report = track_video(args.video, args.out, fps=args.fps, size=args.size, crop=args.crop,
-                         max_seconds=args.max_seconds, progress=stderr_progress)
+                         max_seconds=args.max_seconds, progress=stderr_progress, focal=args.focal)
     if args.json:
         _emit(report, indent=None)
     else:
@@ -559,6 +559,9 @@ def _add_track_command(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--crop", choices=("auto", "none"), default="auto",
                    help="auto: one fixed window around the head; none: the whole frame fitted in")
     s.add_argument("--max-seconds", type=float, default=None, help="use only the video's first seconds")
+    s.add_argument("--focal", type=float, default=None,
+                   help="the focal length in pixels of the output frames, when known (e.g. from the phone's "
+                        "metadata, scaled to --size); default: estimated from the landmarks")
     s.add_argument("--json", action="store_true", help="one JSON line on stdout")
     s.set_defaults(fn=cmd_track)
 

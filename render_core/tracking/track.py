@@ -64,14 +64,16 @@ def _sheet(tiles: list[np.ndarray], path: Path) -> Path:
 def track_video(video: str | os.PathLike, out: str | os.PathLike, *, fps: float | None = None, size: int = 512,
                 crop: str = "auto", max_seconds: float | None = None, threads: int | None = 1,
                 progress: Callable[[str], None] | None = None, limits: VideoLimits | None = None,
-                min_frames: int = MIN_FRAMES) -> dict:
+                min_frames: int = MIN_FRAMES, focal: float | None = None) -> dict:
     """Track ``video`` into the dataset folder ``out`` (module docstring); returns the report: frames_kept,
     frames_dropped (count and runs with reasons), reprojection_px (median over the kept frames), focal, faces (the
     most seen at once, frames with several: the largest was tracked), timing_ms.
 
     ``progress`` gets ``"<step>: <detail>"`` lines (steps ``landmarks`` - every 5% of the frames -, ``fit``,
     ``write``; no paths in them) and may raise to stop the tracking (a cancelled job). ``limits``: the video's
-    (default :class:`~.video.VideoLimits`). Fewer than ``min_frames`` frames with a face is a ``TrackingError`` on
+    (default :class:`~.video.VideoLimits`). ``focal``: the focal length in pixels of the output frames when it is
+    known (a phone records it), instead of searching it from the landmarks (:func:`~.fit.search_focal`). Fewer
+    than ``min_frames`` frames with a face is a ``TrackingError`` on
     ``frames`` (too short)."""
     from ..data.generate import held_out_count
     from ..data.portable import Tracking, write_dataset
@@ -117,7 +119,10 @@ def track_video(video: str | os.PathLike, out: str | os.PathLike, *, fps: float 
     t0 = time.perf_counter()
     model = open_head()
     principal = tuple(window.to_crop(np.array([[W / 2, H / 2]]))[0])
-    fit = fit_frames(model, landmarks[kept], iris[kept], size, size, principal=principal, threads=threads)
+    if focal is not None and not (0 < focal < 100 * size):
+        raise TrackingError(f"must be a positive number of pixels below {100 * size}, got {focal}", field="focal")
+    fit = fit_frames(model, landmarks[kept], iris[kept], size, size, principal=principal, focal=focal,
+                     threads=threads)
     timing["fit"] = time.perf_counter() - t0
 
     n = len(kept)
