@@ -2,8 +2,10 @@
 
 Every file the library and the service publish (bundles, face models, reports, checkpoints, uploads) goes through
 :func:`atomic_path` (write to a temporary file in the same folder, then rename) or :func:`publish` (rename a file
-that is already written). A process killed while writing leaves its temporary file (``.<name>.<16 hex>.tmp``):
-:func:`remove_stale` removes them from a folder whose writer is known to be gone (a resumed training run's).
+that is already written); :func:`create_once` writes a file only when there is none (a generated secret that
+processes starting together must agree on). A process killed while writing leaves its temporary file
+(``.<name>.<16 hex>.tmp``): :func:`remove_stale` removes them from a folder whose writer is known to be gone (a
+resumed training run's).
 """
 
 from __future__ import annotations
@@ -33,6 +35,26 @@ def publish(tmp: str | os.PathLike, path: str | os.PathLike, *, mode: int = 0o64
         finally:
             os.close(fd)
     return path
+
+
+def create_once(path: str | os.PathLike, text: str, *, mode: int = 0o600) -> bool:
+    """Publish ``text`` as ``path`` (with ``mode``, whole or not at all) unless ``path`` exists; True when this call
+    created it. Processes racing on the same ``path`` agree: exactly one creates it (a hard link never replaces),
+    the others find theirs refused and read the winner's."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.parent / f".{path.name}.{secrets.token_hex(8)}.tmp"
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, mode)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as out:
+            out.write(text)
+        try:
+            os.link(tmp, path)
+        except FileExistsError:
+            return False
+        return True
+    finally:
+        tmp.unlink(missing_ok=True)
 
 
 @contextmanager

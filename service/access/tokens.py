@@ -24,11 +24,12 @@ import dataclasses
 import hashlib
 import hmac
 import json
-import os
 import secrets
 import threading
 import time
 from pathlib import Path
+
+from render_core.atomic import create_once
 
 from ..settings import Settings
 
@@ -122,18 +123,7 @@ def _file_secret(path: Path) -> bytes:
     existing = _read(path)
     if existing is not None:
         return existing
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{secrets.token_hex(6)}")
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-    try:
-        with os.fdopen(fd, "w", encoding="ascii") as out:
-            out.write(secrets.token_hex(32) + "\n")
-        try:
-            os.link(tmp, path)  # fails when another process got there first: its secret is the one
-        except FileExistsError:
-            pass
-    finally:
-        tmp.unlink(missing_ok=True)
+    create_once(path, secrets.token_hex(32) + "\n")  # another process may have got there first: its secret wins
     secret = _read(path)
     if secret is None:
         raise ValueError(f"token secret: {path} is empty")

@@ -44,7 +44,6 @@ import hmac
 import ipaddress
 import json
 import logging
-import os
 import random
 import secrets
 import socket
@@ -55,6 +54,8 @@ from typing import TYPE_CHECKING
 from urllib.parse import urlsplit, urlunsplit
 
 import httpx
+
+from render_core.atomic import create_once
 
 from .models import DeliveryStatus, WebhookDelivery
 
@@ -124,21 +125,10 @@ def load_secret(settings: Settings) -> str:
         path = Path(settings.data_dir) / SECRET_FILE
         secret = _read_secret(path)
         if secret is None:
-            path.parent.mkdir(parents=True, exist_ok=True)
             new = SECRET_PREFIX + base64.b64encode(secrets.token_bytes(32)).decode()
-            tmp = path.with_name(f".{SECRET_FILE}.{secrets.token_hex(6)}")
-            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-            try:
-                with os.fdopen(fd, "w") as out:
-                    out.write(new + "\n")
-                try:
-                    os.link(tmp, path)  # fails if another process got there first: then its secret is the one
-                    log.info("webhooks: generated a signing secret in %s (set BLENDSPLAT_WEBHOOK_SECRET to choose "
-                             "one)", path)
-                except FileExistsError:
-                    pass
-            finally:
-                tmp.unlink(missing_ok=True)
+            if create_once(path, new + "\n"):  # else another process got there first: its secret is the one
+                log.info("webhooks: generated a signing secret in %s (set BLENDSPLAT_WEBHOOK_SECRET to choose "
+                         "one)", path)
             secret = _read_secret(path)
             if secret is None:
                 raise ValueError(f"webhook_secret: {path} is empty")
