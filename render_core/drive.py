@@ -14,10 +14,10 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import torch
 
@@ -27,6 +27,7 @@ from .deform import Frame
 from .errors import FrameError
 
 KEYS = ("expression", "joints", "eyelids", "camera")
+T = TypeVar("T")
 PRESETS: dict[str, tuple[float, float]] = {
     "front": (0.0, 0.0),
     "left": (40.0, 0.0),
@@ -151,13 +152,19 @@ def parse_camera(avatar: Avatar, value: Any, width: int, height: int) -> Cameras
                      "{K, R, t, width, height}", field="camera")
 
 
-def parse_frame(avatar: Avatar, obj: Any) -> Frame:
-    """The animation parameters of one driving-file object (its camera aside). Raises FrameError."""
+def check_keys(obj: Any) -> dict:
+    """``obj`` when it is a driving-file object: a JSON object of :data:`KEYS` only. Raises FrameError."""
     if not isinstance(obj, dict):
         raise FrameError(f"expected a JSON object with any of: {', '.join(KEYS)}")
     unknown = [k for k in obj if k not in KEYS]
     if unknown:
         raise FrameError(f"unknown key(s) {unknown}; valid keys: {', '.join(KEYS)}")
+    return obj
+
+
+def parse_frame(avatar: Avatar, obj: Any) -> Frame:
+    """The animation parameters of one driving-file object (its camera aside). Raises FrameError."""
+    check_keys(obj)
     expression = _expression(avatar, obj["expression"]) if "expression" in obj else None
     joints = _joints(avatar, obj["joints"]) if "joints" in obj else None
     eyelids = torch.tensor([_numbers(obj["eyelids"], "eyelids", 2)]) if "eyelids" in obj else None
@@ -183,6 +190,13 @@ def read_drive_file(path: str | Path, avatar: Avatar, width: int, height: int) -
 
 def parse_lines(lines: Iterable[tuple[int, bytes | str]], avatar: Avatar, width: int, height: int,
                 source: str = "<drive>") -> list[DriveFrame]:
+    return parse_json_lines(lines, lambda obj: parse_line(avatar, obj, width, height), source)
+
+
+def parse_json_lines(lines: Iterable[tuple[int, bytes | str]], parse: Callable[[Any], T],
+                     source: str = "<drive>") -> list[T]:
+    """Numbered JSON lines -> ``parse`` of each (blank lines skipped): the one reading of a driving file's lines
+    (a line's size bound, its JSON), every FrameError prefixed with ``source:line``."""
     out = []
     for no, raw in lines:
         if len(raw) > MAX_LINE_BYTES:
@@ -195,7 +209,7 @@ def parse_lines(lines: Iterable[tuple[int, bytes | str]], avatar: Avatar, width:
         except json.JSONDecodeError as e:
             raise FrameError(f"{source}:{no}: not valid JSON ({e.msg} at column {e.colno})") from None
         try:
-            out.append(parse_line(avatar, obj, width, height))
+            out.append(parse(obj))
         except FrameError as e:
             raise FrameError(f"{source}:{no}: {e}") from None
     return out

@@ -284,7 +284,9 @@ def cmd_live(args: argparse.Namespace) -> int:
     """`blendsplat live`: a driving file played over WebRTC (service/live.py); the report as JSON."""
     import logging
 
-    from .live import DriveError, live
+    from render_core.errors import FrameError
+
+    from .live import live
     from .webrtc.client import ClientError
 
     for name in ("aioice", "aiortc", "httpx"):  # their per-connection lines are not this command's output
@@ -292,7 +294,7 @@ def cmd_live(args: argparse.Namespace) -> int:
     try:
         report = asyncio.run(live(args.url, args.avatar, args.drive, out=args.out, size=args.size, fps=args.fps,
                                   codec=args.codec, api_key=args.api_key, loops=args.loops, verify=args.verify))
-    except (ClientError, DriveError, OSError) as e:
+    except (ClientError, FrameError, OSError) as e:
         raise SystemExit(f"blendsplat: error: live: {e}") from None
     core_cli.emit(report, indent=None if args.json else 2)
     return 0 if report["frames"] else 1

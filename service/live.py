@@ -5,26 +5,19 @@ read and turned into the data channel's frame messages (:func:`frame_message`: t
 client sends), sent at ``fps`` through a :class:`~service.webrtc.client.WhepClient`; the decoded video frames are
 written to an MP4 (H.264) when ``out`` is given, and the report gives the frames sent and received, pose-to-frame
 latency (frames matched to their pose by RTP timestamp, :func:`~service.webrtc.client.match_indices`) and the
-server's per-frame timings. A line that is not valid JSON or not an object is refused naming the file and line;
-everything else is the server's to validate (its errors come back on the data channel and are counted).
+server's per-frame timings. A line that is not valid JSON or not an object of the driving file's keys is refused
+naming the file and line (:func:`render_core.drive.parse_json_lines`); the values are the server's to validate
+(its errors come back on the data channel and are counted).
 """
 
 from __future__ import annotations
 
 import asyncio
-import json
 import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-
-DRIVE_KEYS = ("expression", "joints", "eyelids", "camera")
-MAX_LINE = 1 << 20
-
-
-class DriveError(ValueError):
-    """A driving file the client cannot read (the message names the file and line)."""
 
 
 def _camera(value: Any) -> dict:
@@ -58,24 +51,16 @@ def frame_message(line: dict, index: int, client_time_us: int = 0) -> dict:
 
 
 def read_drive(path: str | Path) -> list[dict]:
-    """The driving file's lines as objects (blank lines skipped); DriveError naming the line otherwise."""
+    """The driving file's lines as objects (blank lines skipped; read as ``blendsplat render --drive`` reads them,
+    without an avatar to check the values against); FrameError naming the line otherwise."""
+    from render_core.drive import check_keys, parse_json_lines
+    from render_core.errors import FrameError
+
     path = Path(path)
-    lines = []
-    with path.open("r", encoding="utf-8") as f:
-        for number, text in enumerate(f, 1):
-            if len(text) > MAX_LINE:
-                raise DriveError(f"{path.name}:{number}: a line may hold at most {MAX_LINE} bytes")
-            if not text.strip():
-                continue
-            try:
-                value = json.loads(text)
-            except json.JSONDecodeError as e:
-                raise DriveError(f"{path.name}:{number}: not JSON ({e.msg})") from None
-            if not isinstance(value, dict) or set(value) - set(DRIVE_KEYS):
-                raise DriveError(f"{path.name}:{number}: a frame is an object of {', '.join(DRIVE_KEYS)}")
-            lines.append(value)
+    with path.open("rb") as f:
+        lines = parse_json_lines(enumerate(f, start=1), check_keys, source=path.name)
     if not lines:
-        raise DriveError(f"{path.name}: no frames")
+        raise FrameError(f"{path.name}: the driving file has no frames")
     return lines
 
 

@@ -197,7 +197,7 @@ def test_blendsplat_live_plays_a_driving_file_and_its_frames_match_the_renderer(
     bad.write_text('{"expression": {}}\nnot json\n')
     done = subprocess.run([sys.executable, "-m", "service.cli", "live", "--url", server.http_url, "--avatar", "demo",
                            "--drive", str(bad)], capture_output=True, text=True, timeout=60, env=env)
-    assert done.returncode == 1 and "bad.jsonl:2: not JSON" in done.stderr
+    assert done.returncode == 1 and "bad.jsonl:2: not valid JSON" in done.stderr
     assert wait_until(lambda: gauge(server) == 0, 5.0)
 
 
