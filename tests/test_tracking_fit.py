@@ -163,3 +163,11 @@ def test_a_known_focal_length_is_used_instead_of_searched(tmp_path):
     done = subprocess.run(cmd + ["--out", str(tmp_path / "bad"), "--focal", "-3"], capture_output=True, text=True,
                           timeout=300)
     assert done.returncode != 0 and "focal" in done.stderr and not (tmp_path / "bad" / "tracking.npz").exists()
+
+
+def test_a_video_with_too_few_frames_is_refused_as_too_short_and_nothing_is_written(tmp_path):
+    _, video = synth_video(tmp_path, frames=6, size=64, seed=31)
+    done = subprocess.run([sys.executable, "-m", "service.cli", "track", str(video), "--out", str(tmp_path / "out"),
+                           "--crop", "none", "--size", "64"], capture_output=True, text=True, timeout=300)
+    assert done.returncode != 0 and "too short" in done.stderr and "frames" in done.stderr, done.stderr[-500:]
+    assert not (tmp_path / "out" / "tracking.npz").exists()

@@ -83,6 +83,8 @@ def track_video(video: str | os.PathLike, out: str | os.PathLike, *, fps: float 
 
     if crop not in CROPS:
         raise TrackingError(f"unknown crop {crop!r}; one of {', '.join(CROPS)}", field="crop")
+    if focal is not None and not (0 < focal < 100 * size):  # refused before anything is decoded
+        raise TrackingError(f"must be a positive number of pixels below {100 * size}, got {focal}", field="focal")
     say = progress or (lambda s: None)
     out = Path(out)
     timing = {"decode": 0.0, "landmarks": 0.0, "fit": 0.0, "write": 0.0}
@@ -119,8 +121,6 @@ def track_video(video: str | os.PathLike, out: str | os.PathLike, *, fps: float 
     t0 = time.perf_counter()
     model = open_head()
     principal = tuple(window.to_crop(np.array([[W / 2, H / 2]]))[0])
-    if focal is not None and not (0 < focal < 100 * size):
-        raise TrackingError(f"must be a positive number of pixels below {100 * size}, got {focal}", field="focal")
     fit = fit_frames(model, landmarks[kept], iris[kept], size, size, principal=principal, focal=focal,
                      threads=threads)
     timing["fit"] = time.perf_counter() - t0
@@ -165,12 +165,12 @@ def track_video(video: str | os.PathLike, out: str | os.PathLike, *, fps: float 
     if tiles:
         _sheet(tiles, out / "contact_sheet.png")
     timing["write"] = time.perf_counter() - t_write - (timing["decode"] - decode_before)
-    dropped = len(track.status) - n
-    return {"out": str(out), "frames_kept": n, "frames_dropped": {"count": dropped, "runs": track.report()[
-        "dropped_runs"]}, "interpolated": track.status.count("interpolated"),
+    dropped, seen = len(track.status) - n, track.report()
+    return {"out": str(out), "frames_kept": n, "frames_dropped": {"count": dropped, "runs": seen["dropped_runs"]},
+        "interpolated": track.status.count("interpolated"),
         "reprojection_px": round(float(np.median(fit.reprojection_px)), 3), "focal_px": round(float(fit.K[0, 0]), 2),
         "size": size, "crop": crop, "fps": float(reader.fps), "train": n - n_test, "test": n_test,
-        **{k: track.report()[k] for k in ("max_faces", "frames_with_several_faces")},
+        **{k: seen[k] for k in ("max_faces", "frames_with_several_faces")},
         "timing_ms": {k: round(1000 * v, 1) for k, v in timing.items()},
         "frames_per_second": {"landmarks_and_fit": round(len(track.status) / max(timing["landmarks"]
                                                                                  + timing["fit"], 1e-9), 1)}}

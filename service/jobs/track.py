@@ -41,7 +41,6 @@ from typing import TYPE_CHECKING, Any
 
 from render_core.atomic import atomic_path
 from render_core.data.portable import MANIFEST
-from render_core.errors import TrackingError
 
 from ..errors import redact
 from .attempt import LeaseLost
@@ -125,11 +124,8 @@ def _track(run: JobRun, video: Path, workdir: Path, size: int) -> dict[str, Any]
     out = workdir / TRACKED
     s = run.worker.settings
     report = track_video(video, out, size=size, crop="auto", threads=1, progress=_progress(run),
-                         limits=video_limits(s.max_video_seconds, s.max_video_side, s.max_video_frames))
-    kept = int(report.get("frames_kept") or 0)
-    if kept < MIN_VIDEO_FRAMES:
-        raise TrackingError(f"the video is too short: a face was kept in {kept} frames, at least {MIN_VIDEO_FRAMES} "
-                            "are needed to train an avatar", field="face")
+                         limits=video_limits(s.max_video_seconds, s.max_video_side, s.max_video_frames),
+                         min_frames=MIN_VIDEO_FRAMES)  # fewer frames with a face: the tracker's "too short"
     _check(run)
     if (out / SHEET).is_file():
         with atomic_path(workdir / OVERLAY) as tmp:
