@@ -16,23 +16,13 @@ from render_core.data.portable import read_dataset, validate_dataset
 from render_core.facemodel.open_head import open_head
 from render_core.tracking.correspond import FACE_OVAL, SHIPPED, build_correspondence, load_correspondence
 from render_core.tracking.fit import matrix_to_axis_angle, rodrigues
-from render_core.tracking.known_answer import encode_h264, known_answer
+from render_core.tracking.known_answer import known_answer
+from render_core.tracking.known_answer import synth_video as known_answer_video
 
 
 def synth_video(tmp_path, frames: int, size: int, seed: int):
-    from render_core.data.generate import synth_dataset
-
-    synth_dataset(tmp_path / "truth", frames=frames, size=size, seed=seed)
-    truth = read_dataset(tmp_path / "truth")
-    rgb = [np.asarray(truth.frame(i)) for i in range(len(truth))]
-    rgb = [f if f.dtype == np.uint8 else np.round(f * 255).astype(np.uint8) for f in rgb]
-    encode_h264(rgb, tmp_path / "clip.mp4")
-    return truth.tracking, tmp_path / "clip.mp4"
-
-
-def compare(model, truth, fitted) -> dict:
-    """The known answer (render_core/tracking/known_answer.py: every skin vertex, as the acceptance check counts)."""
-    return known_answer(model, truth, fitted)
+    truth, video = known_answer_video(tmp_path, frames, size, seed)
+    return truth.tracking, video
 
 
 def run_track(video, out, size: int) -> dict:
@@ -110,7 +100,7 @@ def test_track_writes_a_valid_dataset_with_a_report(tracked):
 def test_the_fit_recovers_the_known_tracking(tracked):
     truth, out, report = tracked
     model = open_head()
-    figures = compare(model, truth, read_dataset(out).tracking)
+    figures = known_answer(model, truth, read_dataset(out).tracking)
     print("known answer, 16 frames at 256 px:", {k: round(v, 2) for k, v in figures.items()}, report)
     # Figures at 256 px (goal: 1.5 px at 512, i.e. 0.75 px here; floor 2.5 px at 512): see the docs
     # measured (every skin vertex, as the check counts): 1.16 px median (about 2.3 px at 512), rotation 1.13 deg
@@ -126,7 +116,7 @@ def test_the_fit_recovers_the_known_tracking(tracked):
 def test_the_fit_recovers_longer_clips_at_512(tmp_path, seed):
     truth, video = synth_video(tmp_path, frames=60, size=512, seed=seed)
     report = run_track(video, tmp_path / "out", 512)
-    figures = compare(open_head(), truth, read_dataset(tmp_path / "out").tracking)
+    figures = known_answer(open_head(), truth, read_dataset(tmp_path / "out").tracking)
     print(f"known answer, seed {seed}, 60 frames at 512 px:", {k: round(v, 2) for k, v in figures.items()},
           report["timing_ms"], report["frames_per_second"])
     # Measured (seeds 41, 57; every skin vertex): 2.5 / 1.85 px median (the floor is 2.5 px, the goal 1.5 px),

@@ -17,17 +17,10 @@ from pathlib import Path
 import numpy as np
 
 
-def _rgb8(frame, to_uint8) -> np.ndarray:
-    a = np.asarray(frame)
-    return a if a.dtype == np.uint8 else to_uint8(a)
-
-
 def bench_track(seeds: tuple[int, ...] = (123,), frames: int = 150, size: int = 512, threads: int = 1) -> dict:
-    from ..data.generate import synth_dataset
     from ..data.portable import read_dataset
     from ..facemodel.open_head import open_head
-    from ..media.pixels import to_uint8
-    from ..tracking.known_answer import encode_h264, known_answer
+    from ..tracking.known_answer import known_answer, synth_video
     from ..tracking.track import track_video
 
     model = open_head()
@@ -35,11 +28,9 @@ def bench_track(seeds: tuple[int, ...] = (123,), frames: int = 150, size: int = 
     with tempfile.TemporaryDirectory(prefix="bench-track-") as tmp:
         for seed in seeds:
             folder = Path(tmp) / str(seed)
-            synth_dataset(folder / "truth", frames=frames, size=size, seed=seed, facemodel=model)
-            truth = read_dataset(folder / "truth")
-            encode_h264((_rgb8(truth.frame(i), to_uint8) for i in range(len(truth))), folder / "in.mp4")
+            truth, video = synth_video(folder, frames, size, seed, model)
             t0 = time.perf_counter()
-            report = track_video(folder / "in.mp4", folder / "tracked", size=size, crop="none", threads=threads)
+            report = track_video(video, folder / "tracked", size=size, crop="none", threads=threads)
             wall = time.perf_counter() - t0
             figures = known_answer(model, truth.tracking, read_dataset(folder / "tracked").tracking)
             t = report["timing_ms"]

@@ -6,7 +6,8 @@ surface vertices (the skin: eyeballs, teeth and tongue left out, front- and back
 camera, frame by frame, and reports the median (and 90th percentile) pixel distance between the two, the head's
 rotation error (the head joint's orientation in the camera, degrees) and the jaw's (the opening angle of the
 chin about the jaw joint, from ``jawOpen`` - where the open head's trackings keep the jaw - and the jaw joint's
-rotation, degrees). :func:`encode_h264` makes the ordinary video a phone would: the frames as H.264 (yuv420p).
+rotation, degrees). :func:`encode_h264` makes the ordinary video a phone would: the frames as H.264 (yuv420p);
+:func:`synth_video` a known-answer video: a ``data synth`` dataset (the truth) and its frames so encoded.
 """
 
 from __future__ import annotations
@@ -102,3 +103,17 @@ def encode_h264(frames, path: str | Path, fps: int = 30, crf: int = 14) -> Path:
             for packet in stream.encode():
                 out.mux(packet)
     return path
+
+
+def synth_video(folder: str | Path, frames: int, size: int, seed: int, model=None):
+    """``data synth``'s performance ``seed`` in ``folder/truth`` (the truth: a dataset) and its frames as the H.264
+    video ``folder/clip.mp4``: (the truth's Dataset, the video's path)."""
+    from ..data.generate import synth_dataset
+    from ..data.portable import read_dataset
+    from ..media.pixels import to_uint8
+
+    folder = Path(folder)
+    synth_dataset(folder / "truth", frames=frames, size=size, seed=seed, facemodel=model)
+    truth = read_dataset(folder / "truth")
+    rgb = (np.asarray(truth.frame(i)) for i in range(len(truth)))
+    return truth, encode_h264((f if f.dtype == np.uint8 else to_uint8(f) for f in rgb), folder / "clip.mp4")
