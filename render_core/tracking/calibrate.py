@@ -97,20 +97,21 @@ def calibrate(model, corr: Correspondence, seeds=SEEDS, frames: int = FRAMES, si
     A += RIDGE_PER_FRAME * n * torch.eye(3 * F, dtype=torch.float64)
     offsets = torch.stack([torch.linalg.solve(A[k], b[k]) for k in range(L)]).reshape(L, 3, F)
     calibrated = Correspondence(corr.landmarks, corr.triangles, corr.barycentric, offsets.numpy().astype(np.float32))
-    before = [_residual(plain, problem, obs, *known) for obs, known in videos]
-    after = [_residual(calibrated, problem, obs, *known) for obs, known in videos]
+    fitted = Problem(model, calibrated)
+    before = [_residual(problem, obs, *known) for obs, known in videos]
+    after = [_residual(fitted, obs, *known) for obs, known in videos]
     report = {"frames": n, "seeds": list(seeds), "median_px_before": round(float(np.median(before)), 3),
               "median_px_after": round(float(np.median(after)), 3),
               "offset_mm_median": round(float(offsets[..., 0].norm(dim=-1).median()) * 1000, 2)}
     return calibrated.offsets, report
 
 
-def _residual(corr: Correspondence, problem, obs, expression, R, t, f, c) -> float:
-    """The median pixel distance between the landmarks and their calibrated points at the known answer."""
+def _residual(problem, obs, expression, R, t, f, c) -> float:
+    """The median pixel distance between the landmarks and ``problem``'s points (its correspondence's, with the
+    offsets it has) at the known answer."""
     from .fit import R0, matrix_to_axis_angle
 
-    basis = problem.B + corr.basis_correction(problem.B.dtype) if corr.offsets is not None else problem.B
-    X = corr.anchors(problem.T, matrix_to_axis_angle(R0.T @ R)) + torch.einsum("nk,klc->nlc", expression, basis)
+    X = problem.anchors(matrix_to_axis_angle(R0.T @ R)) + torch.einsum("nk,klc->nlc", expression, problem.B)
     Xc = X @ R.transpose(1, 2) + t[:, None]
     uv = f * Xc[..., :2] / Xc[..., 2:3] + c
     err = (uv - obs).norm(dim=-1)
