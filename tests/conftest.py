@@ -101,10 +101,10 @@ CHROMIUM = Path("/usr/bin/chromium")
 CHROMEDRIVER = Path("/usr/bin/chromedriver")
 
 
-@pytest.fixture
-def driver(tmp_path) -> Iterator:
-    """Headless Debian Chromium through ChromeDriver (the page tests); skipped, with the install command, without
-    them. Selenium is pointed at both binaries, so Selenium Manager never looks for a browser on the network."""
+def chromium(profile: Path, *extra: str, window: str = "1280,1100") -> Iterator:
+    """Headless Debian Chromium through ChromeDriver with its profile in ``profile`` and ``extra`` switches; skipped,
+    with the install command, without them. Selenium is pointed at both binaries, so Selenium Manager never looks
+    for a browser on the network."""
     from selenium import webdriver
     from selenium.webdriver.chrome.service import Service
 
@@ -114,10 +114,9 @@ def driver(tmp_path) -> Iterator:
     options = webdriver.ChromeOptions()
     options.binary_location = str(CHROMIUM)
     # No background networking: this machine has no internet, and Chromium's own lookups only slow it down.
-    # 1280 x 1100: the screenshots show the curves and the preview without scrolling
-    for arg in ("--headless=new", "--no-sandbox", "--disable-gpu", "--window-size=1280,1100", "--no-first-run",
+    for arg in ("--headless=new", "--no-sandbox", "--disable-gpu", f"--window-size={window}", "--no-first-run",
                 "--disable-background-networking", "--disable-component-update", "--disable-sync", "--disable-quic",
-                f"--user-data-dir={tmp_path / 'chromium-profile'}"):
+                f"--user-data-dir={profile}", *extra):
         options.add_argument(arg)
     options.set_capability("goog:loggingPrefs", {"browser": "ALL"})
     drv = webdriver.Chrome(service=Service(executable_path=str(CHROMEDRIVER)), options=options)
@@ -125,6 +124,13 @@ def driver(tmp_path) -> Iterator:
         yield drv
     finally:
         drv.quit()
+
+
+@pytest.fixture
+def driver(tmp_path) -> Iterator:
+    """The page tests' browser (:func:`chromium`); 1280 x 1100: the screenshots show the curves and the preview
+    without scrolling."""
+    yield from chromium(tmp_path / "chromium-profile")
 
 
 # ------------------------------------------------------------------------------------------- PostgreSQL
