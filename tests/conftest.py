@@ -1,4 +1,5 @@
 import contextlib
+import functools
 import secrets
 from collections.abc import Iterator
 from pathlib import Path
@@ -75,6 +76,13 @@ class LiveServer:
         key_file = settings.data_dir / "admin.key"
         self.api_key = key_file.read_text().strip() if key_file.is_file() else None
         self.headers = {"Authorization": f"Bearer {self.api_key}"} if self.api_key else {}
+
+    @functools.cached_property
+    def keys(self):
+        """The server's API key database (tests create and revoke keys through it)."""
+        from service.access.keys import KeyStore
+
+        return KeyStore(self.service.training.jobs.engine)
 
     def call(self, coro, timeout: float = 60):
         """Run a coroutine on the server's loop and wait for its result."""

@@ -28,7 +28,7 @@ from render_core.bundle import write_bundle
 from render_core.tools.synth import synth_avatar
 from service.access.auth import CACHE_SECONDS
 from service.access.http import OPEN_PATHS
-from service.access.keys import ADMIN_TENANT, SCOPES, KeyStore
+from service.access.keys import ADMIN_TENANT, SCOPES
 from service.errors import InvalidArgument, PermissionDenied
 from service.grpc_server import SCOPES as RPC_SCOPES
 from service.http.app import routes as app_routes
@@ -42,7 +42,6 @@ QUOTA = 1 << 20  # tenant_storage_bytes of the module's server
 def server(tmp_path_factory):
     s = LiveServer(tmp_path_factory.mktemp("auth"), auth="keys", key_max_sessions=1, key_uploads_per_hour=5,
                    key_jobs_per_hour=2, tenant_storage_bytes=QUOTA)
-    s.keys = KeyStore(s.service.training.jobs.engine)
     yield s
     s.stop()
 

@@ -18,7 +18,6 @@ from blendsplat.v1 import render_pb2 as pb
 from blendsplat.v1 import render_pb2_grpc as pb_grpc
 from render_core.bundle import write_bundle
 from render_core.tools.synth import synth_avatar
-from service.access.keys import KeyStore
 from tests.test_service import GrpcStream, WsStream
 from tests.test_webhooks import FAST, SECRET, Receiver
 
@@ -40,7 +39,6 @@ class BoundedGrpcStream(GrpcStream):
 def server(tmp_path_factory):
     s = LiveServer(tmp_path_factory.mktemp("hardening2") / "data", auth="keys", stream_key_check_seconds=CHECK,
                    webhook_secret=SECRET, **FAST)
-    s.keys = KeyStore(s.service.training.jobs.engine)
     yield s
     s.stop()
 

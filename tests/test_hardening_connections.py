@@ -21,7 +21,6 @@ from grpc_health.v1 import health_pb2, health_pb2_grpc
 
 from blendsplat.v1 import render_pb2 as pb
 from blendsplat.v1 import render_pb2_grpc as pb_grpc
-from service.access.keys import KeyStore
 from service.http.connections import BODY_GRACE_SECONDS, ConnectionGuard
 from tests.test_service import WsStream
 
@@ -36,7 +35,6 @@ def server(tmp_path_factory):
     s = LiveServer(tmp_path_factory.mktemp("hardening-connections") / "data", auth="keys",
                    header_timeout_seconds=HEAD, body_timeout_seconds=BODY, max_connections_per_address=PER_ADDRESS,
                    key_max_renders=RENDERS, events_keepalive_seconds=0.3)
-    s.keys = KeyStore(s.service.training.jobs.engine)
     yield s
     s.stop()
 

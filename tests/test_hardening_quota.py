@@ -33,7 +33,6 @@ from conftest import LiveServer
 from render_core.data.generate import synth_dataset
 from render_core.train import Trainer, get_preset
 from render_core.train.trainer import checkpoint_dir, last_checkpoint
-from service.access.keys import KeyStore
 from service.access.limits import RateLimited, RedisLimits
 from service.jobs.models import JobRecord
 from service.jobs.uploads import UploadStore
@@ -47,7 +46,6 @@ REDIS_URL = "redis://127.0.0.1:6379/9"  # never database 0
 def server(tmp_path_factory):
     s = LiveServer(tmp_path_factory.mktemp("quota") / "data", auth="keys", tenant_storage_bytes=QUOTA,
                    tenant_max_files=MAX_FILES, key_jobs_per_hour=2)
-    s.keys = KeyStore(s.service.training.jobs.engine)
     yield s
     s.stop()
 

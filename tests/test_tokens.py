@@ -16,7 +16,6 @@ from blendsplat.v1 import render_pb2 as pb
 from blendsplat.v1 import render_pb2_grpc as pb_grpc
 from render_core.bundle import write_bundle
 from render_core.tools.synth import synth_avatar
-from service.access.keys import KeyStore
 from service.access.tokens import Tokens
 from service.settings import Settings
 from tests.test_service import WsStream
@@ -29,7 +28,6 @@ LIMIT = 10 * CHECK + 5
 def server(tmp_path_factory):
     s = LiveServer(tmp_path_factory.mktemp("tokens") / "data", auth="keys", stream_key_check_seconds=CHECK,
                    token_max_seconds=900)
-    s.keys = KeyStore(s.service.training.jobs.engine)
     yield s
     s.stop()
 
