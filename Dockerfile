@@ -39,9 +39,12 @@ RUN apt-get update \
 RUN --mount=type=bind,source=deploy/wheels,target=/tmp/wheels \
     pip install --find-links /tmp/wheels --extra-index-url "${TORCH_INDEX_URL}" "torch==${TORCH_VERSION}"
 # The project's dependencies (with the `train` extra: the jobs' figures) and build requirements: layers that
-# survive source changes (a COPY, not a bind mount: buildah's cache key ignores a bind mount's contents).
+# survive source changes (a COPY, not a bind mount: buildah's cache key ignores a bind mount's contents). The Python
+# client package (clients/python, a dependency that is not on PyPI) is installed first.
+COPY clients/python /tmp/clients-python
 COPY pyproject.toml /tmp/pyproject.toml
-RUN python3 -c 'import tomllib; p = tomllib.load(open("/tmp/pyproject.toml", "rb")); print("\n".join(p["project"]["dependencies"] + p["project"]["optional-dependencies"]["train"] + p["build-system"]["requires"]))' > /tmp/requirements.txt \
+RUN pip install /tmp/clients-python \
+    && python3 -c 'import tomllib; p = tomllib.load(open("/tmp/pyproject.toml", "rb")); print("\n".join(p["project"]["dependencies"] + p["project"]["optional-dependencies"]["train"] + p["build-system"]["requires"]))' > /tmp/requirements.txt \
     && pip install -r /tmp/requirements.txt
 # The sources (.dockerignore keeps only the package, its build files and deploy/'s image files), built and checked.
 COPY . /src/
@@ -49,7 +52,7 @@ RUN pip install --no-build-isolation --no-deps /src \
     && pip uninstall -y scikit-build-core nanobind grpcio-tools \
     && install -m 0644 /src/deploy/healthcheck.py /opt/blendsplat/healthcheck.py \
     && rm -rf /opt/blendsplat/venv/lib/python3*/site-packages/torch/include \
-    && python3 -P -c 'import render_core._native, blendsplat.v1.render_pb2_grpc, service.cli'
+    && python3 -P -c 'import render_core._native, blendsplat.v1.render_pb2_grpc, blendsplat_client, service.cli'
 
 # ----------------------------------------------------------------------------------------------- cpu: final
 FROM ${BASE_IMAGE} AS cpu
@@ -102,15 +105,17 @@ RUN pip install --extra-index-url "${TORCH_CUDA_INDEX_URL}" "torch==${TORCH_CUDA
        "setuptools>=70" "wheel>=0.43" "ninja>=1.11" \
     && pip install --no-build-isolation --no-binary gsplat "gsplat==1.5.3" \
     && python3 -P -c 'from gsplat import csrc'
+COPY clients/python /tmp/clients-python
 COPY pyproject.toml /tmp/pyproject.toml
-RUN python3 -c 'import tomllib; p = tomllib.load(open("/tmp/pyproject.toml", "rb")); print("\n".join(p["project"]["dependencies"] + p["project"]["optional-dependencies"]["train"] + p["build-system"]["requires"]))' > /tmp/requirements.txt \
+RUN pip install /tmp/clients-python \
+    && python3 -c 'import tomllib; p = tomllib.load(open("/tmp/pyproject.toml", "rb")); print("\n".join(p["project"]["dependencies"] + p["project"]["optional-dependencies"]["train"] + p["build-system"]["requires"]))' > /tmp/requirements.txt \
     && pip install -r /tmp/requirements.txt
 COPY . /src/
 RUN pip install --no-build-isolation --no-deps /src \
     && pip uninstall -y scikit-build-core nanobind grpcio-tools ninja \
     && install -m 0644 /src/deploy/healthcheck.py /opt/blendsplat/healthcheck.py \
     && rm -rf /opt/blendsplat/venv/lib/python3*/site-packages/torch/include \
-    && python3 -P -c 'import render_core._native, blendsplat.v1.render_pb2_grpc, service.cli'
+    && python3 -P -c 'import render_core._native, blendsplat.v1.render_pb2_grpc, blendsplat_client, service.cli'
 
 # ---------------------------------------------------------------------------------------------- cuda: final
 FROM ${CUDA_RUNTIME_IMAGE} AS cuda

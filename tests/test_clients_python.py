@@ -339,7 +339,8 @@ def test_nothing_listening_is_connection_failed_after_retries():
     free = socket.create_server(("127.0.0.1", 0))
     port = free.getsockname()[1]
     free.close()
-    with Client(f"http://127.0.0.1:{port}", retry=FAST) as c, pytest.raises(errors.ConnectionFailed):
+    with Client(f"http://127.0.0.1:{port}", retry=FAST) as c, pytest.raises(errors.ConnectionFailed,
+                                                                          match="cannot reach the server at"):
         c.list_avatars()
 
 
@@ -400,6 +401,139 @@ def test_jobs_page_by_page_cancel_delete_and_a_retried_submit(up, trained):
         with pytest.raises(errors.InvalidArgument) as bad:
             c.submit_job(upload["upload_id"], iterations=-1, avatar_id="x")
         assert bad.value.field == "iterations"
+
+
+# ------------------------------------------------------------------------------------------------ jobs, fake servers
+def fake_job(state: str) -> dict:
+    return {"id": "job_fake", "state": state, "spec": {"avatar_id": "fake"}, "progress": {}, "error": None}
+
+
+def wait_on_fake(asynchronous: bool, handler, **kw) -> tuple[dict, list[float]]:
+    """``wait("job_fake", **kw)`` of the sync or asyncio client on a fake server (``handler``): (the job, the
+    pauses it took)."""
+    naps: list[float] = []
+    transport = httpx.MockTransport(handler)
+    if not asynchronous:
+        with Client("http://fake", api_key="", transport=transport, retry=FAST) as c:
+            c._sleep = naps.append
+            return c.wait("job_fake", **kw), naps
+
+    async def main():
+        async def nap(seconds: float) -> None:
+            naps.append(seconds)
+
+        async with AsyncClient("http://fake", api_key="", transport=transport, retry=FAST) as c:
+            c._sleep = nap
+            return await c.wait("job_fake", **kw)
+
+    return asyncio.run(main()), naps
+
+
+@pytest.mark.parametrize("asynchronous", [False, True], ids=["sync", "asyncio"])
+@pytest.mark.parametrize("route", ["missing", "not-sse", "failing"])
+def test_wait_polls_where_the_event_stream_is_missing_or_keeps_failing(asynchronous, route):
+    """No events route (404), a route that is not an event stream, or one that keeps failing (503): the job is read
+    every ``poll_seconds``, each read to ``on_job``; a job that is missing is an error, not a fallback."""
+    states = iter(["queued"] + ["running"] * 4 + ["succeeded"])
+    paths: list[str] = []
+
+    def handler(request: httpx.Request) -> httpx.Response:
+        paths.append(request.url.path)
+        if request.url.path.endswith("/events"):
+            if route == "missing":
+                return httpx.Response(404, json={"error": {"code": "NOT_FOUND", "message": "Not Found"}})
+            if route == "not-sse":
+                return httpx.Response(200, json={"hello": "world"})
+            return httpx.Response(503, json={"error": {"code": "UNAVAILABLE", "message": "draining"}})
+        return httpx.Response(200, json=fake_job(next(states)))
+
+    reads: list[str] = []
+    job, naps = wait_on_fake(asynchronous, handler, on_job=lambda j: reads.append(j["state"]), poll_seconds=2.0,
+                             check=False)
+    assert job["state"] == "succeeded" and reads == ["queued"] + ["running"] * 4 + ["succeeded"]
+    streams = paths.count("/v1/jobs/job_fake/events")
+    if route == "failing":  # reconnects with a backoff, then polling
+        assert streams == 3 and naps == [0.5, 1.0, 2.0, 2.0]
+    else:
+        assert streams == 1 and naps == [2.0] * 4
+
+    def gone(request: httpx.Request) -> httpx.Response:
+        if request.url.path.endswith("/events") or paths:
+            paths.append(request.url.path)
+            return httpx.Response(404, json={"error": {"code": "NOT_FOUND", "message": "no job 'job_fake'",
+                                                       "field": "job_id"}})
+        return httpx.Response(200, json=fake_job("running"))
+
+    paths.clear()
+    with pytest.raises(errors.NotFound) as info:
+        wait_on_fake(asynchronous, gone)
+    assert info.value.field == "job_id" and paths == ["/v1/jobs/job_fake/events", "/v1/jobs/job_fake"]
+
+
+@pytest.mark.parametrize("asynchronous", [False, True], ids=["sync", "asyncio"])
+def test_wait_resumes_after_the_last_event_and_reports_a_deleted_job(asynchronous):
+    def sse(*events: tuple[str | None, str, dict]) -> bytes:
+        return b"".join((f"id: {i}\n" if i else "").encode() + f"event: {kind}\ndata: {json.dumps(data)}\n\n".encode()
+                        for i, kind, data in events)
+
+    bodies = iter([sse(("1", "state", {"state": "running"}), ("2", "progress", {"iteration": 3})),  # then closed
+                   sse(("3", "progress", {"iteration": 6}), ("4", "state", {"state": "succeeded"}))])
+    resumed: list[str | None] = []
+
+    def handler(request: httpx.Request) -> httpx.Response:
+        if request.url.path.endswith("/events"):
+            resumed.append(request.headers.get("Last-Event-ID"))
+            return httpx.Response(200, headers={"content-type": "text/event-stream"}, content=next(bodies))
+        return httpx.Response(200, json=fake_job("succeeded" if len(resumed) == 2 else "running"))
+
+    events: list = []
+    job, naps = wait_on_fake(asynchronous, handler, on_event=events.append)
+    assert job["state"] == "succeeded" and resumed == [None, "2"] and naps == []
+    assert [e.id for e in events] == ["1", "2", "3", "4"]
+
+    def deleted(request: httpx.Request) -> httpx.Response:
+        if request.url.path.endswith("/events"):
+            return httpx.Response(200, headers={"content-type": "text/event-stream; charset=utf-8"},
+                                  content=sse((None, "end", {"state": "deleted"})))
+        return httpx.Response(200, json=fake_job("running"))
+
+    with pytest.raises(errors.NotFound, match="job job_fake was deleted"):
+        wait_on_fake(asynchronous, deleted)
+    with pytest.raises(errors.Timeout, match="timed out after 0.2 s waiting for job job_fake"):
+        wait_on_fake(asynchronous, lambda r: httpx.Response(404 if r.url.path.endswith("/events") else 200,
+                                                            json=fake_job("running")), timeout=0.2)
+
+
+def test_an_upload_sends_exactly_its_content_length(tmp_path):
+    """A file that shrinks while it is sent raises OSError (the request's Content-Length would be a lie); the
+    progress is (bytes sent, total) after each MiB."""
+    from blendsplat_client._rest import CHUNK
+
+    path = tmp_path / "take.tar.gz"
+    path.write_bytes(os.urandom(2 * CHUNK + 5))
+    seen: list[tuple[int, int]] = []
+
+    def handler(request: httpx.Request) -> httpx.Response:
+        body = request.read()
+        assert len(body) == int(request.headers["Content-Length"])
+        return httpx.Response(201, json={"upload_id": "upl_x"})
+
+    with Client("http://fake", api_key="", transport=httpx.MockTransport(handler)) as c:
+        assert c.upload(path, progress=lambda sent, total: seen.append((sent, total)))["upload_id"] == "upl_x"
+        assert seen == [(CHUNK, 2 * CHUNK + 5), (2 * CHUNK, 2 * CHUNK + 5), (2 * CHUNK + 5, 2 * CHUNK + 5)]
+
+        def shrink(sent: int, total: int) -> None:
+            with open(path, "r+b") as f:
+                f.truncate(CHUNK + 10)
+
+        with pytest.raises(OSError, match="shrank while it was sent"):
+            c.upload(path, progress=shrink)
+
+
+def test_framework_answers_and_unreachable_servers_read_well():
+    error = errors.from_http(405, b'{"detail": "Method Not Allowed"}', {})
+    assert error.message == "Method Not Allowed" and error.http_status == 405
+    assert isinstance(errors.error_for("UNIMPLEMENTED", "no such call"), errors.Unimplemented)
 
 
 # ------------------------------------------------------------------------------------------------ asyncio

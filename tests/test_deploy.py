@@ -92,6 +92,16 @@ def config(docs: list[dict]) -> dict[str, str]:
     return maps[0]["data"]
 
 
+def manifest_settings(docs: list[dict]):
+    """The render pods' Settings from the ConfigMap; the TURN secret, which comes from the Secret, as a stand-in."""
+    from service.settings import Settings
+
+    values = {k.removeprefix("BLENDSPLAT_").lower(): v for k, v in config(docs).items()}
+    if values.get("webrtc_turn_urls"):
+        values.setdefault("webrtc_turn_secret", "from-the-secret")
+    return Settings(**values)
+
+
 def settings_fields() -> set[str]:
     from service.settings import Settings
 
@@ -213,8 +223,28 @@ def test_dockerfile_uses_only_what_exists_and_is_in_the_context():
             assert any(source == a or source.startswith(a + "/") for a in allowed), \
                 f"{source}: excluded by .dockerignore"
     for needed in ("pyproject.toml", "CMakeLists.txt", "README.md", "proto", "render_core", "service",
-                   "deploy/wheels"):
+                   "deploy/wheels", "clients/python"):
         assert needed in allowed, f".dockerignore drops {needed}"
+
+
+@pytest.mark.parametrize("builder", ["cpu-builder", "cuda-builder"])
+def test_dockerfile_installs_the_client_package_before_the_dependencies(builder):
+    """The project depends on blendsplat-client, which is not on PyPI: each builder copies clients/python and
+    installs it before the dependencies pyproject.toml lists (pip would look for it on the index otherwise)."""
+    import tomllib
+
+    deps = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["dependencies"]
+    assert any(d.startswith("blendsplat-client") for d in deps)
+    steps = dockerfile_stages()[builder]
+    copied = next(i for i, (ins, args) in enumerate(steps) if ins == "COPY" and args.startswith("clients/python "))
+    target = steps[copied][1].split()[-1]
+    runs = [(i, args) for i, (ins, args) in enumerate(steps) if ins == "RUN"]
+    client = next(i for i, args in runs if f"pip install {target}" in args)
+    requirements = next(i for i, args in runs if "pip install -r /tmp/requirements.txt" in args)
+    assert copied < client <= requirements
+    both = steps[requirements][1]
+    if client == requirements:
+        assert both.index(f"pip install {target}") < both.index("pip install -r /tmp/requirements.txt")
 
 
 # ------------------------------------------------------------------------------------- consistency
@@ -303,10 +333,8 @@ def _container_port(container: dict, port) -> int:
 
 @pytest.mark.parametrize("overlay", OVERLAYS)
 def test_probes_and_ports_match_what_the_service_serves(overlay):
-    from service.settings import Settings
-
     docs = rendered(overlay)
-    settings = Settings(**{k.removeprefix("BLENDSPLAT_").lower(): v for k, v in config(docs).items()})
+    settings = manifest_settings(docs)
     routes = http_routes()
     for workload, c in blendsplat_containers(docs):
         if c["name"] == "render":
@@ -389,10 +417,9 @@ def test_shutdown_fits_the_grace_periods(overlay):
     """Render: preStop + shutdown delay + drain within terminationGracePeriodSeconds. Worker: long enough to
     checkpoint (at least what `blendsplat up` gives its worker)."""
     from service.server import WORKER_STOP_SECONDS
-    from service.settings import Settings
 
     docs = rendered(overlay)
-    settings = Settings(**{k.removeprefix("BLENDSPLAT_").lower(): v for k, v in config(docs).items()})
+    settings = manifest_settings(docs)
     render = one(docs, "Deployment", "blendsplat-render")["spec"]["template"]["spec"]
     container = next(c for c in render["containers"] if c["name"] == "render")
     pre_stop = container["lifecycle"]["preStop"]["exec"]["command"]
@@ -423,7 +450,8 @@ def test_resources_scaling_and_disruption(overlay):
     assert metrics["Resource"]["resource"]["name"] == "cpu"  # the fallback
     pdbs = {d["spec"]["selector"]["matchLabels"]["app.kubernetes.io/component"] for d in
             objects(docs, "PodDisruptionBudget")}
-    assert pdbs == {"render", "worker"}
+    turn = {"turn"} if any(d["metadata"]["name"] == "blendsplat-turn" for d in objects(docs, "Deployment")) else set()
+    assert pdbs == {"render", "worker"} | turn
     spread = one(docs, "Deployment", "blendsplat-render")["spec"]["template"]["spec"]["topologySpreadConstraints"]
     assert {s["topologyKey"] for s in spread} == {"topology.kubernetes.io/zone", "kubernetes.io/hostname"}
     pvc = one(docs, "PersistentVolumeClaim", "blendsplat-data")
@@ -617,6 +645,245 @@ def test_stream_check_streams_from_a_live_server(tmp_path, monkeypatch):
         server.stop()
     assert result["frames"] > 0 and result["errors"] == 0, result
     assert result["api_key"] == bool(key)
+
+
+# ------------------------------------------------------------------------------------------- TURN (WebRTC)
+# deploy/components/turn: coturn for WebRTC clients. The cpu overlay with the component and the URLs its comment
+# shows, and the trial overlay (which includes it), render and validate; coturn's arguments agree with the render
+# pods' settings and the Services and NetworkPolicies; the same arguments run with Debian's coturn on 127.0.0.1.
+TURN_URLS = ("turn:turn.example.com:3478?transport=udp,turn:turn.example.com:3478?transport=tcp,"
+             "turns:turn.example.com:443?transport=tcp")
+EPHEMERAL = (32768, 60999)  # Linux's ephemeral UDP ports: where aioice binds the render pods' host candidates
+_TURN_RENDERED: dict[str, list[dict]] = {}
+
+
+def turn_rendered(variant: str, tmp_path: Path) -> list[dict]:
+    """``trial``, or ``cpu+turn``: the cpu overlay with the component and TURN_URLS, as the comments say to add it."""
+    if variant not in _TURN_RENDERED:
+        if variant == "trial":
+            _TURN_RENDERED[variant] = rendered("trial")
+        else:
+            tmp_path.mkdir(parents=True, exist_ok=True)
+            (tmp_path / "kustomization.yaml").write_text(yaml.safe_dump({
+                "apiVersion": "kustomize.config.k8s.io/v1beta1", "kind": "Kustomization", "namespace": "blendsplat",
+                "resources": [os.path.relpath(DEPLOY / "overlays" / "cpu", tmp_path)],
+                "components": [os.path.relpath(DEPLOY / "components" / "turn", tmp_path)],
+                "configMapGenerator": [{"name": "blendsplat-config", "behavior": "merge",
+                                        "literals": [f"BLENDSPLAT_WEBRTC_TURN_URLS={TURN_URLS}"]}]}))
+            _TURN_RENDERED[variant] = _render(tmp_path, "--load-restrictor", "LoadRestrictionsNone")
+    return _TURN_RENDERED[variant]
+
+
+def turn_arguments(container: dict) -> dict[str, str | bool]:
+    """coturn's command line as {option: value} (True for a flag)."""
+    out: dict[str, str | bool] = {}
+    for arg in container["args"]:
+        name, sep, value = arg.lstrip("-").partition("=")
+        out[name] = value if sep else True
+    return out
+
+
+def coturn_container(docs: list[dict]) -> dict:
+    spec = one(docs, "Deployment", "blendsplat-turn")["spec"]["template"]["spec"]
+    assert [c["name"] for c in spec["containers"]] == ["coturn"]
+    return spec["containers"][0]
+
+
+def _policy_ports(rules: list[dict], peer: str, side: str) -> list[tuple[str, int, int]]:
+    """(protocol, first, last) of the rules whose peers are pods of component ``peer``."""
+    out = []
+    for rule in rules:
+        peers = rule.get(side, [])
+        if any(p.get("podSelector", {}).get("matchLabels", {}).get("app.kubernetes.io/component") == peer
+               for p in peers):
+            out += [(p["protocol"], p["port"], p.get("endPort", p["port"])) for p in rule["ports"]]
+    return out
+
+
+def test_turn_component_and_overlay_comments_show_the_same_urls():
+    for path in (DEPLOY / "components" / "turn" / "kustomization.yaml", DEPLOY / "overlays" / "cpu" /
+                 "kustomization.yaml"):
+        assert f"BLENDSPLAT_WEBRTC_TURN_URLS={TURN_URLS}" in path.read_text(), path
+
+
+def test_turn_component_renders_and_validates_strictly(tmp_path):
+    validate = _tool("kubernetes-validate", "kubernetes-validate")
+    docs = turn_rendered("cpu+turn", tmp_path)
+    path = tmp_path / "cpu-turn.yaml"
+    path.write_text(yaml.safe_dump_all(docs))
+    out = subprocess.run([validate, "--strict", str(path)], capture_output=True, text=True, timeout=300)
+    problems = [line for line in (out.stdout + out.stderr).splitlines() if not line.startswith("INFO")]
+    assert out.returncode == 0 and not problems, "\n".join(problems[:20])
+    service = one(docs, "Service", "blendsplat-turn")
+    assert service["spec"]["type"] == "LoadBalancer" and service["metadata"]["namespace"] == "blendsplat"
+    for name in ("blendsplat-turn", "blendsplat-render-webrtc"):
+        one(docs, "NetworkPolicy", name)
+    one(docs, "PodDisruptionBudget", "blendsplat-turn")
+
+
+@pytest.mark.parametrize("variant", ["cpu+turn", "trial"])
+def test_turn_server_matches_the_render_settings(variant, tmp_path):
+    docs = turn_rendered(variant, tmp_path)
+    settings = manifest_settings(docs)
+    coturn = coturn_container(docs)
+    args = turn_arguments(coturn)
+    env = {e["name"]: e for e in coturn["env"]}
+    # Credentials: use-auth-secret, with the secret the render pods mint them from (same Secret, same key).
+    assert args["n"] is True and args["use-auth-secret"] is True and args["static-auth-secret"] == "$(TURN_SECRET)"
+    assert args.get("realm") and not {"lt-cred-mech", "no-auth", "external-ip", "allow-loopback-peers"} & set(args)
+    render = next(c for w, c in blendsplat_containers(docs) if w == "blendsplat-render" and c["name"] == "render")
+    service_ref = {e["name"]: e for e in render["env"]}["BLENDSPLAT_WEBRTC_TURN_SECRET"]["valueFrom"]["secretKeyRef"]
+    turn_ref = env["TURN_SECRET"]["valueFrom"]["secretKeyRef"]
+    assert (turn_ref["name"], turn_ref["key"]) == (service_ref["name"], service_ref["key"]) and \
+        service_ref["key"] == "turn-secret" and not turn_ref.get("optional")
+    if variant == "trial":  # the generated Secret carries it
+        secret = one(docs, "Secret", turn_ref["name"])
+        assert "turn-secret" in secret["data"]
+    # Relays from the pod's own address, which render pods reach.
+    assert args["relay-ip"] == "$(POD_IP)" and env["POD_IP"]["valueFrom"]["fieldRef"]["fieldPath"] == "status.podIP"
+    # Every TURN URL the render pods hand out: a Service port of its protocol, leading to coturn's listener.
+    service = one(docs, "Service", "blendsplat-turn")
+    container_ports = {(p["name"], p["protocol"]): p["containerPort"] for p in coturn["ports"]}
+    listeners = {"turn": int(args["listening-port"]), "turns": int(args["tls-listening-port"])}
+    seen = set()
+    assert settings.webrtc_turn_urls and settings.webrtc_turn_secret
+    for url in settings.webrtc_turn_urls:
+        m = re.fullmatch(r"(turns?):([^:?]+):(\d+)\?transport=(udp|tcp)", url)
+        assert m, url
+        scheme, _, port, transport = m.groups()
+        assert not (scheme == "turns" and transport == "udp"), url  # TLS is over TCP (DTLS is off)
+        protocol = transport.upper()
+        ports = [p for p in service["spec"]["ports"] if p["port"] == int(port) and p["protocol"] == protocol]
+        assert len(ports) == 1, f"{url}: the Service has no {protocol} port {port}"
+        assert container_ports[(ports[0]["targetPort"], protocol)] == listeners[scheme], url
+        seen.add((scheme, transport, int(port)))
+    if variant == "cpu+turn":  # UDP, TCP for networks without UDP, TLS on 443 for networks with HTTPS only
+        assert seen == {("turn", "udp", 3478), ("turn", "tcp", 3478), ("turns", "tcp", 443)}
+    for p in service["spec"]["ports"]:  # and nothing else is published: no relay port
+        assert (p["targetPort"], p["protocol"]) in container_ports, p
+    # TLS: the certificate and key lie in the mounted (optional) TLS Secret.
+    spec = one(docs, "Deployment", "blendsplat-turn")["spec"]["template"]["spec"]
+    secret_volumes = {v["name"] for v in spec["volumes"] if "secret" in v}
+    tls_mounts = [m["mountPath"] for m in coturn["volumeMounts"] if m["name"] in secret_volumes]
+    for option in ("cert", "pkey"):
+        assert any(args[option].startswith(path.rstrip("/") + "/") for path in tls_mounts), args[option]
+    assert args["no-tlsv1"] and args["no-tlsv1_1"]
+    # Relay ports: above the ephemeral range, reachable from render pods only; coturn sends to render pods only.
+    low, high = int(args["min-port"]), int(args["max-port"])
+    assert EPHEMERAL[1] < low <= high <= 65535 and high - low + 1 >= 3 * settings.max_sessions
+    policy = one(docs, "NetworkPolicy", "blendsplat-turn")["spec"]
+    assert set(policy["policyTypes"]) == {"Ingress", "Egress"}
+    assert _policy_ports(policy["ingress"], "render", "from") == [("UDP", low, high)]
+    public = [r for r in policy["ingress"] if "from" not in r]
+    assert {(p["protocol"], p["port"]) for r in public for p in r["ports"]} == {
+        (protocol, container_ports[(name, protocol)]) for name, protocol in container_ports}
+    assert _policy_ports(policy["egress"], "render", "to") == [("UDP", *EPHEMERAL)]
+    assert all("to" in r for r in policy["egress"])  # no egress rule open to everything
+    render_policy = one(docs, "NetworkPolicy", "blendsplat-render-webrtc")["spec"]
+    assert _policy_ports(render_policy["ingress"], "turn", "from") == [("UDP", *EPHEMERAL)]
+    # Bandwidth: a session may carry the render pods' largest video bitrate.
+    assert int(args["max-bps"]) * 8 >= settings.webrtc_max_bitrate
+
+
+def _free_port(kind: int) -> int:
+    import socket
+
+    with socket.socket(socket.AF_INET, kind) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _self_signed(folder: Path) -> None:
+    """tls.crt and tls.key (what a kubernetes.io/tls Secret holds) for 127.0.0.1."""
+    import datetime
+    import ipaddress
+
+    from cryptography import x509
+    from cryptography.hazmat.primitives import hashes, serialization
+    from cryptography.hazmat.primitives.asymmetric import ec
+    from cryptography.x509.oid import NameOID
+
+    key = ec.generate_private_key(ec.SECP256R1())
+    name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "turn.test")])
+    now = datetime.datetime.now(datetime.UTC)
+    cert = (x509.CertificateBuilder().subject_name(name).issuer_name(name).public_key(key.public_key())
+            .serial_number(x509.random_serial_number()).not_valid_before(now - datetime.timedelta(minutes=1))
+            .not_valid_after(now + datetime.timedelta(hours=1))
+            .add_extension(x509.SubjectAlternativeName([x509.IPAddress(ipaddress.ip_address("127.0.0.1"))]), False)
+            .sign(key, hashes.SHA256()))
+    folder.mkdir(parents=True)
+    (folder / "tls.crt").write_bytes(cert.public_bytes(serialization.Encoding.PEM))
+    (folder / "tls.key").write_bytes(key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
+                                                       serialization.NoEncryption()))
+
+
+def test_turn_arguments_run_with_coturn_and_relay_with_the_services_credentials(tmp_path):
+    """The manifest's coturn arguments, with the pod's address as 127.0.0.1, free ports, the TLS Secret and /tmp
+    under tmp_path, run with Debian's coturn (listening on 127.0.0.1 only): an allocation with credentials the
+    service mints (service.webrtc.ice.turn_credentials) succeeds over UDP, TCP and TLS, its relayed port within
+    the manifest's range; a wrong secret is refused."""
+    import asyncio
+    import ssl
+    import time
+
+    binary = shutil.which("turnserver")
+    if binary is None:
+        pytest.skip("coturn is not installed: apt-get install -y coturn")
+    import aioice.turn
+    from aioice.stun import TransactionFailed
+
+    from service.webrtc.ice import turn_credentials
+
+    coturn = coturn_container(turn_rendered("cpu+turn", tmp_path / "render"))
+    args = turn_arguments(coturn)
+    low, high = int(args["min-port"]), int(args["max-port"])
+    tls_path = next(m["mountPath"] for m in coturn["volumeMounts"] if m["name"] == "tls").rstrip("/")
+    _self_signed(tmp_path / "tls")
+    plain, tls, secret = _free_port(2), _free_port(1), "deploy-test-secret"  # SOCK_DGRAM, SOCK_STREAM
+    local = {"listening-port": plain, "tls-listening-port": tls, "relay-ip": "127.0.0.1",
+             "static-auth-secret": secret}
+    argv = [binary, "--listening-ip=127.0.0.1"]
+    for arg in coturn["args"]:
+        name, _, value = arg.lstrip("-").partition("=")
+        if name in local:
+            value = local[name]
+        elif value.startswith(tls_path + "/"):  # the TLS Secret's mount
+            value = str(tmp_path / "tls" / value.removeprefix(tls_path + "/"))
+        elif value.startswith("/tmp/"):  # the pod's emptyDir
+            value = str(tmp_path / value.removeprefix("/tmp/"))
+        argv.append(f"--{name}={value}" if value else arg)
+    log = tmp_path / "turnserver.log"
+    process = subprocess.Popen(argv, stdout=log.open("w"), stderr=subprocess.STDOUT, cwd=tmp_path)
+
+    async def allocate(transport: str, password: str, port: int, context=None):
+        username, credential = turn_credentials(password, 600)
+        relay, _ = await asyncio.wait_for(aioice.turn.create_turn_endpoint(
+            asyncio.DatagramProtocol, ("127.0.0.1", port), username, credential, ssl=context, transport=transport), 10)
+        try:
+            return relay.get_extra_info("sockname")
+        finally:
+            relay.close()
+
+    try:
+        deadline = time.monotonic() + 10
+        while "Total General servers" not in log.read_text() and time.monotonic() < deadline:
+            assert process.poll() is None, log.read_text()[-3000:]
+            time.sleep(0.1)
+        context = ssl.create_default_context(cafile=str(tmp_path / "tls" / "tls.crt"))
+        context.minimum_version = ssl.TLSVersion.TLSv1_2
+        for transport, port, ctx in (("udp", plain, None), ("tcp", plain, None), ("tcp", tls, context)):
+            address = asyncio.run(allocate(transport, secret, port, ctx))
+            assert address[0] == "127.0.0.1" and low <= address[1] <= high, (transport, port, address)
+        with pytest.raises(TransactionFailed, match="401"):
+            asyncio.run(allocate("udp", "not-the-secret", plain))
+        text = log.read_text()
+        assert f"{int(args['max-bps'])} bytes per second allowed per session" in text, text[-3000:]
+    finally:
+        process.terminate()
+        try:
+            process.wait(5)
+        except subprocess.TimeoutExpired:
+            process.kill()
 
 
 # ------------------------------------------------------------------------------------ container smoke

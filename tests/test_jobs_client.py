@@ -1,9 +1,10 @@
-"""`blendsplat jobs` (service/jobs/client.py), the training jobs' command-line client, against a real `blendsplat up`
-(the service and one worker child, a temporary data dir, one per module): submit a dataset folder and wait for it,
-submit an archive, list, show, Ctrl-C while waiting, cancel then wait, delete, a wrong server, HTTP errors, no
-duplicate job when the create POST is retried. The event stream's client side (ordered events, resume with
-Last-Event-ID after a dropped connection, the polling fallback when the route answers 404 or keeps failing) and the
-streamed upload body are tested against fake servers (httpx transports), and the fallback also against the real one.
+"""`blendsplat jobs` (service/jobs/cli.py over the Python client package, blendsplat_client), the training jobs'
+command-line client, against a real `blendsplat up` (the service and one worker child, a temporary data dir, one per
+module): submit a dataset folder and wait for it, submit an archive, list, show, Ctrl-C while waiting, cancel then
+wait, delete, a wrong server, HTTP errors, no duplicate job when the create POST is retried. What the commands use of
+the client's job following (ordered events, resume with Last-Event-ID after a dropped connection, the polling
+fallback when the route answers 404 or keeps failing, every job read reported) and the streamed upload body are
+tested against fake servers (httpx transports), and the fallback also against the real one.
 """
 
 from __future__ import annotations
@@ -22,10 +23,11 @@ from pathlib import Path
 
 import httpx
 import pytest
+from blendsplat_client import Client, Event, errors
+from blendsplat_client._follow import STREAM_FAILURES
+from blendsplat_client._rest import CHUNK
 
 from service.cli import main as blendsplat
-from service.jobs import client as jobs_client
-from service.jobs.client import ApiError, ConnectionFailed, Event, JobsClient
 from service.jobs.display import Watch
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -65,8 +67,8 @@ class Up:
     def output(self) -> str:
         return self.log.read_text(errors="replace")
 
-    def client(self, **kwargs) -> JobsClient:
-        return JobsClient(self.url, self.key, **kwargs)
+    def client(self, **kwargs) -> Client:
+        return Client(self.url, api_key=self.key or "", **kwargs)
 
     def args(self) -> list[str]:
         """The common options of every `jobs` command for this server."""
@@ -171,6 +173,15 @@ def test_every_command_has_help(capsys, command):
     assert "BLENDSPLAT_SERVER" in out and "BLENDSPLAT_API_KEY" in out
 
 
+def test_the_commands_use_the_client_package():
+    """One HTTP client of the jobs API: the commands call blendsplat_client (clients/python), none of their own."""
+    import service.jobs.cli as jobs_cli
+
+    source = Path(jobs_cli.__file__).read_text() + (ROOT / "service" / "jobs" / "display.py").read_text()
+    assert "import httpx" not in source and "from blendsplat_client import" in source
+    assert not (ROOT / "service" / "jobs" / "client.py").exists()
+
+
 def test_submit_refuses_what_is_not_a_dataset(capsys, tmp_path):
     (tmp_path / "empty").mkdir()
     code, out, err = run(capsys, "jobs", "submit", str(tmp_path / "empty"), "--server", "http://127.0.0.1:9")
@@ -215,7 +226,7 @@ def long_job(up, archive, folder_job):
         for call in (client.cancel_job, client.delete_job):
             try:
                 call(job["id"])
-            except ApiError:
+            except errors.BlendsplatError:
                 pass
 
 
@@ -265,17 +276,17 @@ def test_a_retried_create_makes_no_second_job(up, archive, long_job):
     transport = Forward(drop_first_answer)
     with up.client(transport=transport) as client:
         upload = client.upload(archive)
-        spec = {"upload_id": upload["upload_id"], "preset": "tiny", "iterations": 100000, "avatar_id": "retried"}
-        job = client.create_job(spec, idempotency_key="retry-test-1")
+        spec = {"preset": "tiny", "iterations": 100000, "avatar_id": "retried"}
+        job = client.submit_job(upload["upload_id"], idempotency_key="retry-test-1", **spec)
         try:
             assert dropped == [201]
             posts = [r for r in transport.requests if r.method == "POST" and r.url.path == "/v1/jobs"]
             assert len(posts) == 2 and {r.headers["Idempotency-Key"] for r in posts} == {"retry-test-1"}
-            same = [j for j in client.list_jobs(limit=500)["jobs"] if j["spec"]["avatar_id"] == "retried"]
+            same = [j for j in client.jobs_page(limit=500)["jobs"] if j["spec"]["avatar_id"] == "retried"]
             assert [j["id"] for j in same] == [job["id"]]
             refusing = Forward(refuse)
-            with JobsClient(up.url, up.key, transport=refusing) as other, pytest.raises(ConnectionFailed):
-                other.create_job(spec)  # no key: no retry (it could make a second job)
+            with up.client(transport=refusing) as other, pytest.raises(errors.ConnectionFailed):
+                other.submit_job(upload["upload_id"], idempotency_key=None, **spec)  # no key: no retry (two jobs)
             assert len(refusing.requests) == 1
         finally:
             client.cancel_job(job["id"])
@@ -316,7 +327,8 @@ def test_cancel_then_wait_exits_1_and_the_polling_fallback_sees_it(up, long_job,
     def follow():
         with up.client(transport=transport) as client:
             try:
-                followed["job"] = client.follow(job["id"], on_event=watch.on_event, on_job=watch.on_job, timeout=240)
+                followed["job"] = client.wait(job["id"], on_event=watch.on_event, on_job=watch.on_job, timeout=240,
+                                              check=False)
             except Exception as exc:  # reported below
                 followed["error"] = exc
 
@@ -422,13 +434,10 @@ def test_the_real_event_stream_replays_a_finished_job(up):
     """Where the server has GET /v1/jobs/{id}/events (issue 16): a finished job's recorded events, in order, then
     the stream closes."""
     with up.client() as client:
-        finished = client.list_jobs(state="succeeded", limit=1)["jobs"]
+        finished = client.jobs_page(state="succeeded", limit=1)["jobs"]
         if not finished:
             pytest.skip("no finished job (the submit test did not run)")
-        try:
-            events = list(client.events(finished[0]["id"], read_timeout=30))
-        except jobs_client.EventsUnavailable as exc:
-            pytest.skip(f"this server has no job event stream yet ({exc})")
+        events = list(client.events(finished[0]["id"], read_timeout=30))
     progress = [e.data["iteration"] for e in events if e.event == "progress"]
     assert progress and progress == sorted(progress) and progress[-1] == 20
     states = [e.data.get("state") for e in events if e.event == "state"]
@@ -438,6 +447,11 @@ def test_the_real_event_stream_replays_a_finished_job(up):
 
 
 # ------------------------------------------------------------------------------------------ fake servers
+def fake_client(handler) -> Client:
+    """A client of a fake server (``handler``: request -> response), no key."""
+    return Client("http://fake", api_key="", transport=httpx.MockTransport(handler))
+
+
 def job_json(state: str, **progress) -> dict:
     return {"id": "job_fake", "state": state, "spec": {"avatar_id": "fake", "preset": "tiny"},
             "progress": progress, "error": None, "result": None, "cancel_requested": False,
@@ -477,9 +491,9 @@ def test_events_arrive_in_order_and_resume_after_a_dropped_connection():
     received: list[Event] = []
     stream = io.StringIO()
     watch = Watch("job_fake", bars=True, stream=stream)
-    with JobsClient("http://fake", "k-123", transport=httpx.MockTransport(handler)) as client:
-        job = client.follow("job_fake", on_event=lambda e: (received.append(e), watch.on_event(e)),
-                            sleep=lambda s: None)
+    with Client("http://fake", api_key="k-123", transport=httpx.MockTransport(handler)) as client:
+        client._sleep = lambda s: None
+        job = client.wait("job_fake", on_event=lambda e: (received.append(e), watch.on_event(e)))
     watch.close()
     assert job["state"] == "succeeded"
     assert [e.id for e in received] == ["1", "2", "3", "4", "5"]
@@ -506,12 +520,15 @@ def test_polling_when_the_events_route_is_missing_or_keeps_failing():
                 return events_answer()
             return httpx.Response(200, json=job_json(next(states), iteration=len(requests), total_iterations=10))
 
-        with JobsClient("http://fake", transport=httpx.MockTransport(handler)) as client:
-            job = client.follow("job_fake", sleep=naps.append)
+        with fake_client(handler) as client:
+            client._sleep = naps.append
+            job = client.wait("job_fake", on_job=reads.append)
         return job, requests, naps
 
+    reads: list[dict] = []
     job, requests, naps = run_fake(lambda: httpx.Response(404, json=NO_ROUTE))
-    assert job["state"] == "succeeded"
+    assert job["state"] == "succeeded" and [r["state"] for r in reads] == ["queued", "running", "running", "running",
+                                                                            "succeeded"]
     assert requests[:3] == ["/v1/jobs/job_fake", "/v1/jobs/job_fake/events", "/v1/jobs/job_fake"]
     assert requests.count("/v1/jobs/job_fake/events") == 1 and naps == [1.0] * 3  # polled every second
 
@@ -519,7 +536,7 @@ def test_polling_when_the_events_route_is_missing_or_keeps_failing():
     job, requests, naps = run_fake(lambda: httpx.Response(503, json={"error": {"code": "UNAVAILABLE",
                                                                               "message": "draining"}}))
     assert job["state"] == "succeeded"
-    assert requests.count("/v1/jobs/job_fake/events") == jobs_client.STREAM_FAILURES
+    assert requests.count("/v1/jobs/job_fake/events") == STREAM_FAILURES
     assert naps[:2] == [0.5, 1.0] and naps[2:] == [1.0] * (len(naps) - 2)  # backoff, then polling
 
     # a 404 for the job (not the route) is the job's: an error, no polling
@@ -531,9 +548,10 @@ def test_polling_when_the_events_route_is_missing_or_keeps_failing():
         return httpx.Response(200, json=job_json("running"))
 
     gone: list[bool] = []
-    with JobsClient("http://fake", transport=httpx.MockTransport(job_gone)) as client, \
-            pytest.raises(ApiError, match="404 not_found: no job 'job_fake'"):
-        client.follow("job_fake", sleep=lambda s: None)
+    with fake_client(job_gone) as client, pytest.raises(errors.NotFound, match="no job 'job_fake'") as info:
+        client._sleep = lambda s: None
+        client.wait("job_fake")
+    assert info.value.http_status == 404 and info.value.field == "job_id"
 
 
 def test_a_job_deleted_while_followed_ends_the_wait():
@@ -543,9 +561,9 @@ def test_a_job_deleted_while_followed_ends_the_wait():
             return httpx.Response(200, headers={"content-type": "text/event-stream; charset=utf-8"}, content=body)
         return httpx.Response(200, json=job_json("running"))
 
-    with JobsClient("http://fake", transport=httpx.MockTransport(handler)) as client, \
-            pytest.raises(jobs_client.ClientError, match="job job_fake was deleted"):
-        client.follow("job_fake", sleep=lambda s: None)
+    with fake_client(handler) as client, pytest.raises(errors.NotFound, match="job job_fake was deleted"):
+        client._sleep = lambda s: None
+        client.wait("job_fake")
 
 
 def test_the_replayed_history_is_not_shown_again():
@@ -566,13 +584,12 @@ def test_a_wait_times_out():
             return httpx.Response(404, json=NO_ROUTE)
         return httpx.Response(200, json=job_json("running"))
 
-    with JobsClient("http://fake", transport=httpx.MockTransport(handler)) as client, \
-            pytest.raises(jobs_client.WaitTimeout, match="timed out after 0.3 s"):
-        client.follow("job_fake", timeout=0.3, poll_seconds=0.05)
+    with fake_client(handler) as client, pytest.raises(errors.Timeout, match="timed out after 0.3 s"):
+        client.wait("job_fake", timeout=0.3, poll_seconds=0.05)
 
 
 def test_the_upload_is_streamed_in_pieces_with_its_length(tmp_path):
-    data = os.urandom(2 * jobs_client.CHUNK + 12345)
+    data = os.urandom(2 * CHUNK + 12345)
     archive = tmp_path / "take.tar.gz"
     archive.write_bytes(data)
     seen: dict = {}
@@ -583,12 +600,12 @@ def test_the_upload_is_streamed_in_pieces_with_its_length(tmp_path):
             seen.update(headers=request.headers, pieces=pieces, url=str(request.url))
             return httpx.Response(201, json={"upload_id": "upl_x", "frames": 1})
 
-    sent: list[int] = []
-    with JobsClient("http://fake:8080/", "secret-key", transport=Server()) as client:
-        assert client.upload(archive, progress=sent.append)["upload_id"] == "upl_x"
+    sent: list[tuple[int, int]] = []
+    with Client("http://fake:8080/", api_key="secret-key", transport=Server()) as client:
+        assert client.upload(archive, progress=lambda n, total: sent.append((n, total)))["upload_id"] == "upl_x"
     body = b"".join(seen["pieces"])
-    assert len(seen["pieces"]) >= 4 and max(map(len, seen["pieces"])) <= jobs_client.CHUNK
-    assert sum(sent) == len(data)
+    assert len(seen["pieces"]) >= 4 and max(map(len, seen["pieces"])) <= CHUNK
+    assert sent == [(CHUNK, len(data)), (2 * CHUNK, len(data)), (len(data), len(data))]
     headers = seen["headers"]
     assert int(headers["Content-Length"]) == len(body) and "Transfer-Encoding" not in headers
     assert headers["Authorization"] == "Bearer secret-key" and "secret" not in seen["url"]

@@ -98,3 +98,17 @@ def test_the_using_it_commands_run_verbatim_and_do_what_they_say(tmp_path):
     assert len(frames) == 3, frames
     assert subprocess.run([str(tmp_path / ".venv" / "bin" / "blendsplat"), "bundle", "validate",
                            str(tmp_path / "scratch" / "head.bundle")], capture_output=True).returncode == 0
+
+
+def test_the_test_command_is_ci_s_and_installs_the_client_package_first():
+    """The README's test command is .ci/run's command line, character for character; it and the set-up command
+    install ./clients/python (blendsplat-client, a dependency of the project that is not on PyPI) before the
+    project, so pip never looks for it on the index."""
+    text = README.read_text(encoding="utf-8")
+    test_block = re.search(r"```bash\n(.*?)```", text.split("Run the tests", 1)[1], re.S).group(1).strip()
+    ci = (README.parent / ".ci" / "run").read_text(encoding="utf-8").strip().splitlines()[-1]
+    assert test_block == ci
+    setup = re.search(r"```bash\n(.*?)```", text.split("## Set up and run", 1)[1], re.S).group(1).strip()
+    for command, project in ((ci, "pip install -q -e '.[dev]'"), (setup, "pip install -e . ")):
+        client = re.search(r"pip install (-q )?(-e )?\./clients/python\b", command)
+        assert client and client.start() < command.index(project), command

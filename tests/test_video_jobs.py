@@ -34,7 +34,6 @@ from blendsplat.v1 import render_pb2_grpc as pb_grpc
 from render_core.data import validate_dataset
 from service.jobs import EventKind, JobStore
 from service.jobs.archive import ArchiveError
-from service.jobs.sse import parse_events
 from service.jobs.uploads import UploadStore
 from service.jobs.video import VideoError, sniff_video, video_limits
 from service.jobs.worker import Worker
@@ -140,9 +139,10 @@ def run_job(server: ServerProcess, upload_id: str, avatar_id: str, timeout: floa
 
 def job_events(server: ServerProcess, job_id: str) -> list:
     """The finished job's whole history from its event stream (it ends with `end`)."""
-    with server.http.stream("GET", f"/v1/jobs/{job_id}/events") as r:
-        assert r.status_code == 200
-        return list(parse_events(r.iter_lines()))
+    from blendsplat_client import Client
+
+    with Client(server.url, api_key=server.key) as client:
+        return list(client.events(job_id))
 
 
 def test_a_video_upload_is_sniffed_probed_and_kept_as_it_is(up, videos):

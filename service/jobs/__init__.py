@@ -14,8 +14,8 @@ The jobs table is the single source of truth: no broker holds a job. :class:`Job
 - training: ``worker.py`` (``blendsplat worker``), ``run.py`` (one job trained to its end), ``attempt.py`` (its
   lease: heartbeats, cancel), ``artefacts.py`` (the work folder's files, the commit), ``resize.py`` (a dataset at
   the job's resolution), ``track.py`` (a video upload's track stage);
-- ``webhooks.py`` (the dispatcher); ``client.py`` with ``sse.py``, ``cli.py`` with ``display.py`` (``blendsplat
-  jobs``).
+- ``webhooks.py`` (the dispatcher); ``cli.py`` with ``display.py`` (``blendsplat jobs``, over the
+  blendsplat_client package in clients/python).
 """
 
 from .checks import PROGRESS_FIELDS, new_job_id

@@ -1,10 +1,13 @@
-"""`blendsplat jobs submit | list | show | cancel | wait | delete`: the command-line side of
-:mod:`service.jobs.client` (progress bars, the printed summary, exit codes, argument parsing).
+"""`blendsplat jobs submit | list | show | cancel | wait | delete`: a command-line client of the training jobs' REST
+API (service/jobs/api.py) over the Python client package, ``blendsplat_client`` (clients/python: the HTTP calls,
+retries of idempotent ones, the event stream with its polling fallback, typed errors); here are the commands'
+side: arguments, checking and packing a dataset folder, progress bars, the printed results, exit codes.
 
 Conventions (docs/architecture.md): results go to stdout (the job's JSON with ``--json``, else a short summary);
 progress bars (tqdm, only when stderr is a terminal), state changes and errors go to stderr. Exit codes: 0
 success (``submit --wait`` / ``wait``: the job succeeded), 1 the job failed or was cancelled, 2 a usage,
-connection, HTTP or timeout error, 130 waiting interrupted by Ctrl-C (the job goes on).
+connection, HTTP or timeout error, 130 waiting interrupted by Ctrl-C (the job goes on). The API key is sent as
+``Authorization: Bearer KEY`` and never printed nor put in a URL.
 """
 
 from __future__ import annotations
@@ -14,36 +17,61 @@ import logging
 import math
 import os
 import sys
+import tarfile
 import tempfile
-import uuid
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from .client import (
-    ARCHIVE_SUFFIXES,
-    DEFAULT_SERVER,
-    KEY_ENV,
-    SERVER_ENV,
-    STATES,
-    TERMINAL,
-    VIDEO_SUFFIXES,
-    ClientError,
-    JobsClient,
-    WaitTimeout,
-    check_dataset,
-    pack_dataset,
-)
-from .display import UploadBar, Watch, summary
+from blendsplat_client import BlendsplatError, Client, RetryPolicy, errors
 
+from .display import TERMINAL, UploadBar, Watch, error_text, job_table, summary
+
+DEFAULT_SERVER = "http://127.0.0.1:8080"
+SERVER_ENV, KEY_ENV = "BLENDSPLAT_SERVER", "BLENDSPLAT_API_KEY"
+STATES = ("queued", "running", "succeeded", "failed", "cancelled")
+ARCHIVE_SUFFIXES = (".tar.gz", ".tgz", ".tar", ".zip")
+VIDEO_SUFFIXES = (".mp4", ".m4v", ".mov", ".webm", ".mkv")  # a video the server tracks (it sniffs the content)
+RETRY = RetryPolicy(attempts=3)  # idempotent calls (reads, the keyed create): two more tries, under 2 s
 EXIT_OK, EXIT_JOB, EXIT_ERROR, EXIT_INTERRUPTED = 0, 1, 2, 130
-log = logging.getLogger(__name__)
 
 
-def _client(args: argparse.Namespace) -> JobsClient:
+class CliError(Exception):
+    """What stops a command before the server has a say (a wrong argument, not a dataset): exit 2."""
+
+
+def _client(args: argparse.Namespace) -> Client:
     server = args.server or os.environ.get(SERVER_ENV) or DEFAULT_SERVER
-    key = args.api_key if args.api_key is not None else os.environ.get(KEY_ENV)
-    return JobsClient(server, key or None)
+    key = args.api_key if args.api_key is not None else os.environ.get(KEY_ENV, "")
+    try:
+        return Client(server, api_key=key, retry=RETRY)
+    except ValueError as exc:  # the URL or the key
+        raise CliError(str(exc).replace("the server URL", "--server")) from None
+
+
+def check_dataset(folder: Path) -> None:
+    """Check a tracked-video dataset folder (docs/tracked-video-format.md) before it is packed: the manifest and
+    tracking fully, the frame and mask files for existence (the server decodes every one); CliError naming the
+    problem."""
+    from render_core.data.portable import read_dataset
+    from render_core.errors import DatasetError
+
+    if not (folder / "dataset.json").is_file():
+        raise CliError(f"{folder} is not a tracked-video dataset: it has no dataset.json "
+                       "(docs/tracked-video-format.md; `blendsplat data convert` makes one)")
+    try:
+        read_dataset(folder)
+    except DatasetError as exc:
+        raise CliError(f"{folder} is not a valid tracked-video dataset: {exc}") from None
+
+
+def pack_dataset(folder: Path, out: Path) -> None:
+    """Pack a tracked-video dataset folder into a .tar.gz on disk, the dataset in one top-level folder; checked
+    first (:func:`check_dataset`)."""
+    check_dataset(folder)
+    with tarfile.open(out, "w:gz", compresslevel=3, dereference=True) as tar:  # frames are PNG: little to gain
+        tar.add(folder, arcname=folder.resolve().name or "dataset",
+                filter=lambda m: m if (m.isfile() or m.isdir()) else None)
 
 
 def _print_json(obj: Any) -> None:
@@ -52,11 +80,11 @@ def _print_json(obj: Any) -> None:
     emit(obj)  # strict JSON, as every command's
 
 
-def _show(client: JobsClient, job: dict[str, Any], as_json: bool) -> None:
+def _show(client: Client, job: dict[str, Any], as_json: bool) -> None:
     if as_json:
         _print_json(job)
     else:
-        sys.stdout.write(summary(client, job) + "\n")
+        sys.stdout.write(summary(client.settings.url, job) + "\n")
         sys.stdout.flush()
 
 
@@ -79,22 +107,22 @@ def _ended(job: dict[str, Any], want: str = "succeeded") -> int:
     return EXIT_JOB
 
 
-def _wait(client: JobsClient, args: argparse.Namespace, job_id: str, want: str = "succeeded") -> int:
+def _wait(client: Client, args: argparse.Namespace, job_id: str, want: str = "succeeded") -> int:
     """Follow a job to its end, show it, and return the exit code (0: it ended ``want``)."""
     watch = Watch(job_id)
     try:
-        job = client.follow(job_id, on_event=watch.on_event, on_job=watch.on_job,
-                            timeout=getattr(args, "timeout", None))
+        job = client.wait(job_id, on_event=watch.on_event, on_job=watch.on_job, check=False,
+                          timeout=getattr(args, "timeout", None))
     except KeyboardInterrupt:
         watch.close()
         state = f" ({watch.state})" if watch.state else ""
         print(f"\nstopped waiting; job {job_id} goes on{state}. Resume with: {_resume_hint(args, job_id)}",
               file=sys.stderr, flush=True)
         return EXIT_INTERRUPTED
-    except WaitTimeout as exc:
+    except errors.Timeout as exc:
         watch.close()
-        raise WaitTimeout(f"{exc}; it goes on ({watch.state or 'not finished'}). Resume with: "
-                          f"{_resume_hint(args, job_id)}") from None
+        raise CliError(f"{error_text(exc, SERVER_ENV)}; it goes on ({watch.state or 'not finished'}). Resume with: "
+                       f"{_resume_hint(args, job_id)}") from None
     finally:
         watch.close()
     _show(client, job, args.json)
@@ -114,11 +142,11 @@ def cmd_submit(args: argparse.Namespace) -> int:
             check_dataset(source)
         elif source.is_file():
             if not source.name.lower().endswith(ARCHIVE_SUFFIXES + VIDEO_SUFFIXES):
-                raise ClientError(f"{source} is neither a dataset folder, a .tar.gz, .tar or .zip archive, nor a "
-                                  "video (.mp4, .mov, .webm, .mkv)")
+                raise CliError(f"{source} is neither a dataset folder, a .tar.gz, .tar or .zip archive, nor a "
+                               "video (.mp4, .mov, .webm, .mkv)")
         else:
-            raise ClientError(f"{source}: no such dataset folder or archive")
-        client.check()
+            raise CliError(f"{source}: no such dataset folder or archive")
+        client.jobs_page(limit=1)  # the server answers the jobs API and accepts the key
         if source.is_dir():
             archive = Path(tmp) / f"{source.resolve().name or 'dataset'}.tar.gz"
             print(f"packing {source} ...", file=sys.stderr, flush=True)
@@ -132,13 +160,13 @@ def cmd_submit(args: argparse.Namespace) -> int:
             bar.close()
         upload_id = upload.get("upload_id")
         if not isinstance(upload_id, str):
-            raise ClientError("the server's upload answer has no upload_id")
+            raise CliError("the server's upload answer has no upload_id")
         print(f"uploaded {upload.get('frames', '?')} frames of {upload.get('width', '?')}x{upload.get('height', '?')}"
               f" as {upload_id}", file=sys.stderr, flush=True)
-        job = client.create_job({"upload_id": upload_id, **spec}, idempotency_key=str(uuid.uuid4()))
+        job = client.submit_job(upload_id, **spec)  # with a fresh Idempotency-Key: retried, never made twice
         job_id = job.get("id")
         if not isinstance(job_id, str):
-            raise ClientError("the server's job answer has no id")
+            raise CliError("the server's job answer has no id")
         if not args.wait:
             _show(client, job, args.json)
             return EXIT_OK
@@ -163,7 +191,7 @@ def cmd_list(args: argparse.Namespace) -> int:
         jobs: list[dict[str, Any]] = []
         cursor = None
         while len(jobs) < args.limit:
-            page = client.list_jobs(args.state, min(500, args.limit - len(jobs)), cursor)
+            page = client.jobs_page(args.state, min(500, args.limit - len(jobs)), cursor)
             jobs += page.get("jobs") or []
             cursor = page.get("next_cursor")
             if not cursor:
@@ -174,19 +202,7 @@ def cmd_list(args: argparse.Namespace) -> int:
         if not jobs:
             sys.stdout.write("no jobs\n" if not args.state else f"no {args.state} jobs\n")
             return EXIT_OK
-        rows = [("ID", "STATE", "PROGRESS", "AVATAR", "PSNR", "CREATED")]
-        for job in jobs:
-            p = job.get("progress") or {}
-            done = (f"{p.get('iteration') or 0}/{p.get('total_iterations') or '?'}"
-                    if p.get("total_iterations") else "")
-            psnr = p.get("psnr")
-            rows.append((str(job.get("id")), str(job.get("state")), done,
-                         str((job.get("spec") or {}).get("avatar_id", "")),
-                         f"{psnr:.2f}" if isinstance(psnr, int | float) else "",
-                         str(job.get("created_at", ""))[:19].replace("T", " ")))
-        widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
-        for r in rows:
-            sys.stdout.write("  ".join(v.ljust(w) for v, w in zip(r, widths, strict=True)).rstrip() + "\n")
+        sys.stdout.write("".join(line + "\n" for line in job_table(jobs)))
         if cursor:
             sys.stdout.write(f"(more: --limit {args.limit + 50})\n")
         return EXIT_OK
@@ -230,7 +246,8 @@ def cmd_delete(args: argparse.Namespace) -> int:
 
 
 def _run(fn: Callable[[argparse.Namespace], int]) -> Callable[[argparse.Namespace], int]:
-    """A command with the client's error handling: ClientError -> its message on stderr, exit 2."""
+    """A command with the client's error handling: an error (the client's, a usage error, a file that cannot be
+    read) -> its message on stderr, exit 2."""
 
     def run(args: argparse.Namespace) -> int:
         if not getattr(args, "verbose", False):
@@ -238,7 +255,10 @@ def _run(fn: Callable[[argparse.Namespace], int]) -> Callable[[argparse.Namespac
             logging.getLogger("httpcore").setLevel(logging.WARNING)
         try:
             return fn(args)
-        except ClientError as exc:
+        except BlendsplatError as exc:
+            print(f"blendsplat: error: {error_text(exc, SERVER_ENV)}", file=sys.stderr, flush=True)
+            return EXIT_ERROR
+        except (CliError, OSError) as exc:
             print(f"blendsplat: error: {exc}", file=sys.stderr, flush=True)
             return EXIT_ERROR
         except KeyboardInterrupt:
@@ -257,6 +277,12 @@ def _positive(text: str) -> int:
     if value < 1:
         raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
     return value
+
+
+def _job_id(text: str) -> str:
+    if not text or not text.isprintable():
+        raise argparse.ArgumentTypeError(f"not a job id: {text!r}")
+    return text
 
 
 def _seconds(text: str) -> float:
@@ -324,14 +350,14 @@ def add_commands(commands) -> None:
 
     s = sub.add_parser("show", parents=[common], help="one job: state, progress, result, links",
                        description="One job: state, progress, error, result (avatar, held-out PSNR) and links.")
-    s.add_argument("id", help="the job's id (job_...)")
+    s.add_argument("id", type=_job_id, help="the job's id (job_...)")
     s.set_defaults(fn=_run(cmd_show))
 
     s = sub.add_parser("cancel", parents=[common], epilog=EPILOG, help="cancel a job",
                        description="A queued job is cancelled at once; a running one stops before its next "
                                    "iteration. With --wait, follows it until it ends: exit 0 if it ended cancelled, "
                                    "1 if it ended otherwise first.")
-    s.add_argument("id", help="the job's id (job_...)")
+    s.add_argument("id", type=_job_id, help="the job's id (job_...)")
     s.add_argument("--wait", action="store_true", help="wait until the job has stopped")
     waiting(s)
     s.set_defaults(fn=_run(cmd_cancel))
@@ -341,12 +367,12 @@ def add_commands(commands) -> None:
                                    "server-sent events, or by polling every second where the server has none. Exit "
                                    "0 if it succeeded, 1 if it failed or was cancelled. Ctrl-C stops waiting, not "
                                    "the job.")
-    s.add_argument("id", help="the job's id (job_...)")
+    s.add_argument("id", type=_job_id, help="the job's id (job_...)")
     waiting(s)
     s.set_defaults(fn=_run(cmd_wait))
 
     s = sub.add_parser("delete", parents=[common], help="delete a job: its row, events and work folder",
                        description="Deletes a job whatever its state: its row, its events and its work folder "
                                    "(a running job stops before its next iteration and commits nothing).")
-    s.add_argument("id", help="the job's id (job_...)")
+    s.add_argument("id", type=_job_id, help="the job's id (job_...)")
     s.set_defaults(fn=_run(cmd_delete))

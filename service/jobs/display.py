@@ -1,6 +1,8 @@
 """What ``blendsplat jobs`` shows people (:mod:`service.jobs.cli`): the live view on stderr while it follows a job
 (:class:`Watch`: state lines, a bar of iterations with loss, PSNR and ETA), the upload's byte bar
-(:class:`UploadBar`) and a job's short summary on stdout (:func:`summary`). Bars only when stderr is a terminal.
+(:class:`UploadBar`), a job's short summary (:func:`summary`) and the jobs' table (:func:`job_table`) on stdout, and
+the one line an error of the client (``blendsplat_client``) is shown as (:func:`error_text`). Bars only when stderr
+is a terminal.
 """
 
 from __future__ import annotations
@@ -9,8 +11,10 @@ import sys
 from datetime import UTC, datetime
 from typing import Any
 
-from .client import TERMINAL, JobsClient
-from .sse import Event
+from blendsplat_client import BlendsplatError, Event
+from blendsplat_client.errors import ConnectionFailed
+
+TERMINAL = frozenset({"succeeded", "failed", "cancelled"})
 
 
 class Watch:
@@ -122,17 +126,23 @@ class UploadBar:
             self.bar = tqdm(total=total, desc=f"upload {name}", unit="B", unit_scale=True, unit_divisor=1024,
                             file=self.stream, dynamic_ncols=True)
 
-    def __call__(self, n: int) -> None:
+    def __call__(self, sent: int, total: int) -> None:
+        """The client's upload progress: bytes sent so far of ``total``."""
         if self.bar is not None:
-            self.bar.update(n)
+            self.bar.update(sent - self.bar.n)
 
     def close(self) -> None:
         if self.bar is not None:
             self.bar.close()
 
 
-def summary(client: JobsClient, job: dict[str, Any]) -> str:
-    """A few lines about a job for people: id, state, avatar, progress, PSNR, error, links."""
+def summary(server: str, job: dict[str, Any]) -> str:
+    """A few lines about a job for people: id, state, avatar, progress, PSNR, error, links (absolute: on
+    ``server``, the base URL)."""
+
+    def url(path: str) -> str:
+        return server + path if path.startswith("/") else path
+
     spec = job.get("spec") or {}
     result = job.get("result") or {}
     progress = job.get("progress") or {}
@@ -141,7 +151,7 @@ def summary(client: JobsClient, job: dict[str, Any]) -> str:
              + (" (cancel requested)" if job.get("cancel_requested") and job.get("state") not in TERMINAL else "")]
     avatar = result.get("avatar_id") or spec.get("avatar_id")
     if avatar:
-        lines.append(f"  avatar        {avatar}" + (f"  {client.url(links['avatar'])}" if links.get("avatar") else ""))
+        lines.append(f"  avatar        {avatar}" + (f"  {url(links['avatar'])}" if links.get("avatar") else ""))
     lines.append(f"  preset        {spec.get('preset', '?')}, {spec.get('iterations') or 'default'} iterations")
     if progress.get("iteration") is not None:
         text = f"  progress      {progress.get('iteration')}/{progress.get('total_iterations') or '?'}"
@@ -163,8 +173,33 @@ def summary(client: JobsClient, job: dict[str, Any]) -> str:
     if job.get("error"):
         lines.append(f"  error         {job['error']}")
     if links.get("self"):
-        lines.append(f"  job           {client.url(links['self'])}")
+        lines.append(f"  job           {url(links['self'])}")
     for name in ("report", "contact-sheet"):
         if name in (links.get("artefacts") or {}):
-            lines.append(f"  {name:<13} {client.url(links['artefacts'][name])}")
+            lines.append(f"  {name:<13} {url(links['artefacts'][name])}")
     return "\n".join(lines)
+
+
+def job_table(jobs: list[dict[str, Any]]) -> list[str]:
+    """Jobs as the lines of a table: id, state, progress, avatar, PSNR, creation time."""
+    rows = [("ID", "STATE", "PROGRESS", "AVATAR", "PSNR", "CREATED")]
+    for job in jobs:
+        p = job.get("progress") or {}
+        done = f"{p.get('iteration') or 0}/{p.get('total_iterations') or '?'}" if p.get("total_iterations") else ""
+        psnr = p.get("psnr")
+        rows.append((str(job.get("id")), str(job.get("state")), done, str((job.get("spec") or {}).get("avatar_id", "")),
+                     f"{psnr:.2f}" if isinstance(psnr, int | float) else "",
+                     str(job.get("created_at", ""))[:19].replace("T", " ")))
+    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
+    return ["  ".join(v.ljust(w) for v, w in zip(r, widths, strict=True)).rstrip() for r in rows]
+
+
+def error_text(exc: BlendsplatError, server_env: str) -> str:
+    """An error of the client as one line: an HTTP error answer as ``STATUS code: message (field F)``, a server
+    that cannot be reached with a hint (``server_env``: the variable that names the server)."""
+    if isinstance(exc, ConnectionFailed) and exc.message.startswith("cannot reach"):
+        return f"{exc.message}; is it running (`blendsplat up`)? Point at another with --server or {server_env}"
+    if exc.http_status is not None:
+        where = f" (field {exc.field})" if exc.field else ""
+        return f"{exc.http_status} {exc.status.code.lower()}: {exc.message}{where}"
+    return exc.message

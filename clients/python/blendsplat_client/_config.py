@@ -120,6 +120,9 @@ def transport_error(exc: Exception, url: str) -> BlendsplatError:
     """An httpx transport failure as a typed error."""
     import httpx
 
+    reason = str(exc) or type(exc).__name__
     if isinstance(exc, httpx.TimeoutException) and not isinstance(exc, httpx.ConnectTimeout):
         return Timeout(f"no answer from {url} in time ({type(exc).__name__})")
-    return ConnectionFailed(f"cannot reach {url} ({exc or type(exc).__name__})")
+    if isinstance(exc, httpx.ConnectError | httpx.ConnectTimeout):
+        return ConnectionFailed(f"cannot reach the server at {url} ({reason})")
+    return ConnectionFailed(f"the connection to {url} failed ({reason})")

@@ -70,7 +70,8 @@ def _source(data: bytes | str | os.PathLike) -> tuple[Callable[[], Any], int, st
 def file_body(data, progress: Callable[[int, int], None] | None, *, field_name: str | None = None,
               extra_parts: Mapping[str, tuple[bytes, str]] | None = None):
     """(headers, body factory): the file as the raw body, or as the multipart field ``field_name`` (after
-    ``extra_parts``: name -> (bytes, content type)); read in 1 MiB pieces, ``progress(sent, total)`` after each."""
+    ``extra_parts``: name -> (bytes, content type)); read in 1 MiB pieces, ``progress(sent, total)`` after each, with
+    its Content-Length (never chunked). A file that shrinks while it is sent raises OSError."""
     opener, size, filename = _source(data)
     head = tail = b""
     headers = {}
@@ -92,7 +93,10 @@ def file_body(data, progress: Callable[[int, int], None] | None, *, field_name: 
         yield head
         sent = 0
         with opener() as f:
-            while chunk := f.read(CHUNK):
+            while sent < size:  # exactly the Content-Length: a file that grew is sent as it was measured
+                chunk = f.read(min(CHUNK, size - sent))
+                if not chunk:
+                    raise OSError(f"{filename} shrank while it was sent ({sent} of {size} bytes)")
                 sent += len(chunk)
                 yield chunk
                 if progress is not None:

@@ -6,6 +6,8 @@ import json
 from dataclasses import dataclass, field
 from typing import Any
 
+from .errors import Unimplemented
+
 
 @dataclass
 class Event:
@@ -49,7 +51,8 @@ class Parser:
         return None
 
 
-def finished(event: Event) -> bool:
-    """Whether the event says the job has ended."""
-    return event.event == "end" or (event.event == "state" and event.data.get("state") in
-                                    ("succeeded", "failed", "cancelled"))
+def not_sse(headers) -> None:
+    """Raise :class:`~blendsplat_client.errors.Unimplemented` unless an answer is an event stream."""
+    kind = headers.get("content-type", "").split(";")[0].strip().lower()
+    if kind != "text/event-stream":
+        raise Unimplemented(f"the job event route answered {kind or 'no content type'}, not an event stream")

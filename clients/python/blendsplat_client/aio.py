@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import asyncio
 import os
-import time
 from collections.abc import AsyncIterator, Callable
 from pathlib import Path
 from typing import Any
@@ -13,8 +12,9 @@ from typing import Any
 from . import _pose, errors
 from ._astream import AsyncStream
 from ._config import RetryPolicy, grpc_channel, settings, transport_error
-from ._rest import TERMINAL, Api, Call, part
-from ._sse import Event, Parser, finished
+from ._follow import POLL_SECONDS, Follow
+from ._rest import Api, Call, part
+from ._sse import Event, Parser, not_sse
 from ._stream import StreamCore
 
 
@@ -33,6 +33,8 @@ class AsyncClient(Api):
                                       transport=transport, verify=self.settings.verify(),
                                       timeout=httpx.Timeout(self.timeout))
         self._channel = self._stub = None
+
+    _sleep = staticmethod(asyncio.sleep)  # waits of ``wait`` (tests replace it)
 
     async def _retrying(self, attempt: Callable[[], Any], idempotent: bool) -> Any:
         tries = 0
@@ -115,13 +117,16 @@ class AsyncClient(Api):
         """The job's server-sent events, as :meth:`Client.events`: an async iterator."""
         import httpx
 
-        headers = {"Accept": "text/event-stream", **({"Last-Event-ID": last_event_id} if last_event_id else {})}
+        headers = {"Accept": "text/event-stream", "Cache-Control": "no-cache"}
+        if last_event_id is not None:
+            headers["Last-Event-ID"] = last_event_id
         parser = Parser()
         try:
             async with self.http.stream("GET", f"/v1/jobs/{part(job_id)}/events", headers=headers,
                                         timeout=httpx.Timeout(self.timeout, read=read_timeout)) as response:
                 if response.status_code >= 400:
                     raise errors.from_http(response.status_code, await response.aread(), response.headers)
+                not_sse(response.headers)
                 async for line in response.aiter_lines():
                     if (event := parser.line(line)) is not None:
                         yield event
@@ -129,31 +134,38 @@ class AsyncClient(Api):
             raise transport_error(exc, self.settings.url) from None
 
     async def wait(self, job_id: str, *, on_event: Callable[[Event], None] | None = None,
-                   timeout: float | None = None, check: bool = True) -> dict:
-        """Follow a job to its end, as :meth:`Client.wait`."""
-        deadline = None if timeout is None else time.monotonic() + timeout
-        last, failures = None, 0
-        while True:
+                   timeout: float | None = None, check: bool = True, on_job: Callable[[dict], None] | None = None,
+                   poll_seconds: float = POLL_SECONDS) -> dict:
+        """Follow a job to its end, as :meth:`Client.wait` (the callbacks are plain functions)."""
+        follow = Follow(job_id, timeout, on_event, on_job, poll_seconds)
+        job = await self.get_job(job_id)
+        while not follow.job(job):
+            if pause := follow.pause():
+                await self._sleep(pause)
+            if follow.streaming:
+                follow.closed(await self._read_events(follow))
+            else:
+                follow.left()
             job = await self.get_job(job_id)
-            if job.get("state") in TERMINAL:
-                break
-            if deadline is not None and time.monotonic() > deadline:
-                raise errors.Timeout(f"job {job_id} still {job.get('state')} after {timeout} s")
-            read = 60.0 if deadline is None else max(0.5, min(60.0, deadline - time.monotonic()))
-            try:
-                async for event in self.events(job_id, last, read_timeout=read):
-                    last = event.id or last
-                    if on_event is not None:
-                        on_event(event)
-                    if finished(event) or (deadline is not None and time.monotonic() > deadline):
-                        break
-                failures = 0
-            except (errors.Unavailable, errors.Timeout, errors.ResourceExhausted):
-                failures += 1
-                await asyncio.sleep(min(5.0, 0.5 * failures))
         if check and job.get("state") != "succeeded":
             raise errors.JobFailed(job)
         return job
+
+    async def _read_events(self, follow: Follow) -> errors.BlendsplatError | None:
+        follow.opening()
+        stream = self.events(follow.job_id, follow.last_id, read_timeout=follow.read_timeout())
+        try:
+            while True:
+                try:
+                    event = await anext(stream)
+                except StopAsyncIteration:
+                    return None
+                except errors.BlendsplatError as exc:
+                    return exc
+                if follow.event(event):
+                    return None
+        finally:
+            await stream.aclose()
 
     async def close(self) -> None:
         await self.http.aclose()

@@ -10,8 +10,9 @@ from typing import Any
 
 from . import _pose, errors
 from ._config import RetryPolicy, grpc_channel, settings, transport_error
-from ._rest import TERMINAL, Api, Call, part
-from ._sse import Event, Parser, finished
+from ._follow import POLL_SECONDS, Follow
+from ._rest import Api, Call, part
+from ._sse import Event, Parser, not_sse
 from ._stream import Stream, StreamCore
 
 
@@ -33,6 +34,8 @@ class Client(Api):
         self.http = httpx.Client(base_url=self.settings.url, headers=self.settings.headers, transport=transport,
                                  verify=self.settings.verify(), timeout=httpx.Timeout(self.timeout))
         self._channel = self._stub = None
+
+    _sleep = staticmethod(time.sleep)  # waits of ``wait`` (tests replace it)
 
     # ------------------------------------------------------------------------------------------- executors
     def _retrying(self, attempt: Callable[[], Any], idempotent: bool) -> Any:
@@ -116,16 +119,20 @@ class Client(Api):
     def events(self, job_id: str, last_event_id: str | None = None, *, read_timeout: float = 60.0
                ) -> Iterator[Event]:
         """``GET /v1/jobs/{id}/events``: the job's events (after ``last_event_id``) as they come, until the server
-        closes the stream (after ``end`` for a finished job)."""
+        closes the stream (after ``end`` for a finished job). An answer that is not an event stream raises
+        :class:`~blendsplat_client.errors.Unimplemented`."""
         import httpx
 
-        headers = {"Accept": "text/event-stream", **({"Last-Event-ID": last_event_id} if last_event_id else {})}
+        headers = {"Accept": "text/event-stream", "Cache-Control": "no-cache"}
+        if last_event_id is not None:
+            headers["Last-Event-ID"] = last_event_id
         parser = Parser()
         try:
             with self.http.stream("GET", f"/v1/jobs/{part(job_id)}/events", headers=headers,
                                   timeout=httpx.Timeout(self.timeout, read=read_timeout)) as response:
                 if response.status_code >= 400:
                     raise errors.from_http(response.status_code, response.read(), response.headers)
+                not_sse(response.headers)
                 for line in response.iter_lines():
                     if (event := parser.line(line)) is not None:
                         yield event
@@ -133,34 +140,44 @@ class Client(Api):
             raise transport_error(exc, self.settings.url) from None
 
     def wait(self, job_id: str, *, on_event: Callable[[Event], None] | None = None, timeout: float | None = None,
-             check: bool = True) -> dict:
-        """Follow a job to its end by its events (reconnecting after the last one seen; polling when the stream
-        keeps failing); the job as it ended. ``on_event`` gets every event (progress: iteration, loss, psnr, eta).
-        ``check``: raise :class:`~blendsplat_client.errors.JobFailed` unless it succeeded. ``timeout``: seconds
-        (:class:`~blendsplat_client.errors.Timeout`)."""
-        deadline = None if timeout is None else time.monotonic() + timeout
-        last, failures = None, 0
-        while True:
+             check: bool = True, on_job: Callable[[dict], None] | None = None,
+             poll_seconds: float = POLL_SECONDS) -> dict:
+        """Follow a job to its end by its events (reconnecting after the last one seen); the job as it ended. Where
+        the server has no event stream, or it keeps failing, the job is polled every ``poll_seconds``.
+        ``on_event`` gets every event (progress: iteration, loss, psnr, eta), ``on_job`` every read of the job (the
+        first one, one after each stream, each poll). ``check``: raise :class:`~blendsplat_client.errors.JobFailed`
+        unless it succeeded. ``timeout``: seconds (:class:`~blendsplat_client.errors.Timeout`). A job deleted
+        meanwhile raises :class:`~blendsplat_client.errors.NotFound`."""
+        follow = Follow(job_id, timeout, on_event, on_job, poll_seconds)
+        job = self.get_job(job_id)
+        while not follow.job(job):
+            if pause := follow.pause():
+                self._sleep(pause)
+            if follow.streaming:
+                follow.closed(self._read_events(follow))
+            else:
+                follow.left()
             job = self.get_job(job_id)
-            if job.get("state") in TERMINAL:
-                break
-            if deadline is not None and time.monotonic() > deadline:
-                raise errors.Timeout(f"job {job_id} still {job.get('state')} after {timeout} s")
-            read = 60.0 if deadline is None else max(0.5, min(60.0, deadline - time.monotonic()))
-            try:
-                for event in self.events(job_id, last, read_timeout=read):
-                    last = event.id or last
-                    if on_event is not None:
-                        on_event(event)
-                    if finished(event) or (deadline is not None and time.monotonic() > deadline):
-                        break
-                failures = 0
-            except (errors.Unavailable, errors.Timeout, errors.ResourceExhausted):
-                failures += 1
-                time.sleep(min(5.0, 0.5 * failures))  # a dropped or idle stream: read the job, then again
         if check and job.get("state") != "succeeded":
             raise errors.JobFailed(job)
         return job
+
+    def _read_events(self, follow: Follow) -> errors.BlendsplatError | None:
+        """One event stream of a followed job, until it closes, fails (the error, returned) or says the job ended."""
+        follow.opening()
+        stream = self.events(follow.job_id, follow.last_id, read_timeout=follow.read_timeout())
+        try:
+            while True:
+                try:
+                    event = next(stream)
+                except StopIteration:
+                    return None
+                except errors.BlendsplatError as exc:
+                    return exc
+                if follow.event(event):
+                    return None
+        finally:
+            stream.close()
 
     # ------------------------------------------------------------------------------------------- lifetime
     def close(self) -> None:

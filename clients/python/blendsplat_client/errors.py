@@ -2,7 +2,8 @@
 body ``{"error": {"code", "message", "field"}}``, from gRPC's trailing metadata ``blendsplat-status-bin`` (a
 serialized ``blendsplat.v1.Status``), or from a stream's ``error`` / final ``status`` message. The class is the code's:
 ``NotFound``, ``InvalidArgument`` (``field`` names what was wrong), ``PermissionDenied``, ``Unauthenticated``,
-``ResourceExhausted`` (``retry_after`` when the server said), ``FailedPrecondition``, ``Unavailable``, ``Internal``;
+``ResourceExhausted`` (``retry_after`` when the server said), ``FailedPrecondition``, ``Unavailable``, ``Internal``,
+``Unimplemented`` (the server has no such call, e.g. an older one);
 ``Timeout`` when a call ran past its timeout, ``ConnectionFailed`` (an ``Unavailable``) when no answer came.
 """
 
@@ -73,6 +74,12 @@ class Internal(BlendsplatError):
     code = "INTERNAL"
 
 
+class Unimplemented(BlendsplatError):
+    """The server has no such call (an older server, or a route answered with something else than expected)."""
+
+    code = "UNIMPLEMENTED"
+
+
 class Unavailable(BlendsplatError):
     code = "UNAVAILABLE"
 
@@ -104,7 +111,7 @@ class JobFailed(BlendsplatError):
 
 
 CLASSES = {c.code: c for c in (Cancelled, InvalidArgument, NotFound, PermissionDenied, ResourceExhausted,
-                               FailedPrecondition, Internal, Unavailable, Unauthenticated, Timeout)}
+                               FailedPrecondition, Internal, Unimplemented, Unavailable, Unauthenticated, Timeout)}
 _BY_HTTP = {400: InvalidArgument, 401: Unauthenticated, 403: PermissionDenied, 404: NotFound, 408: Timeout,
             409: FailedPrecondition, 413: InvalidArgument, 422: InvalidArgument, 429: ResourceExhausted,
             499: Cancelled, 503: Unavailable}
@@ -138,15 +145,17 @@ def from_http(status: int, body: bytes, headers) -> BlendsplatError:
     """The error of an HTTP error answer (its status, body and headers)."""
     retry_after = retry_after_seconds(headers.get("retry-after"))
     try:
-        error = json.loads(body or b"null")
+        error_body = json.loads(body or b"null")
     except ValueError:
-        error = None
-    error = error.get("error") if isinstance(error, dict) else None
+        error_body = None
+    error = error_body.get("error") if isinstance(error_body, dict) else None
     if isinstance(error, dict) and error.get("code"):
         return error_for(str(error["code"]), str(error.get("message") or ""), field=str(error.get("field") or ""),
                          http_status=status, retry_after=retry_after, error_id=error.get("errorId"))
     cls = _BY_HTTP.get(status) or (Internal if status >= 500 else BlendsplatError)
+    detail = error_body.get("detail") if isinstance(error_body, dict) else None  # a framework's own answer
     text = body[:200].decode(errors="replace").strip() if body else ""
+    text = detail if isinstance(detail, str) and detail else text
     return cls(text or f"HTTP {status}", http_status=status, retry_after=retry_after)
 
 
