@@ -7,8 +7,9 @@ logged and the built-in one warms up instead; a warm-up that fails altogether le
 ready, the reason in the log and in /readyz's body - it never exits the process.
 SIGTERM/SIGINT: not ready at once and new streams are refused; after ``shutdown_delay_seconds`` request bodies
 still arriving (uploads) are refused with 503, open streams get no new frames, frames already received are sent,
-every stream ends with an UNAVAILABLE status, then both servers stop - all within ``drain_seconds`` (uvicorn's
-and gRPC's own grace periods are what is left of it).
+every stream ends with an UNAVAILABLE status (a WebRTC session's on its data channel, then every peer connection
+closes), then both servers stop - all within ``drain_seconds`` (uvicorn's and gRPC's own grace periods are what is
+left of it).
 
 Training jobs: the process opens the job database (migrated to head) and the upload folder at start, serves the
 jobs' REST routes (:mod:`service.jobs.api`; submitting and reading jobs needs no worker in this process), and runs
@@ -217,6 +218,8 @@ class Service:
         def left() -> float:  # never 0: uvicorn reads 0 as "wait for ever"
             return max(0.1, deadline - time.monotonic())
 
+        if self.app is not None:  # WebRTC peers: their final statuses leave, then every peer connection closes
+            await self.app.state.webrtc.drain(left())
         if self.grpc:
             await self.grpc.stop(grace=min(1.0, left()))
         if self.http:

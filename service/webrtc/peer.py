@@ -16,7 +16,8 @@ and the process's sessions (:class:`Peers`).
   connection within ``webrtc_connect_seconds``, nothing heard from the peer (RTCP receiver reports, data-channel
   messages) for ``webrtc_peer_timeout_seconds``, ``DELETE``, the data channel closed by the client, and the end of
   the engine session (a drain, a revoked key, the stream's maximum duration, the client's ``end``: the final status
-  is sent on the data channel first). Each frees the engine session and the ``blendsplat_webrtc_sessions`` slot.
+  is sent on the data channel first), and the server's shutdown (:meth:`Peers.drain`: what the drain left open).
+  Each frees the engine session and the ``blendsplat_webrtc_sessions`` slot.
 """
 
 from __future__ import annotations
@@ -284,6 +285,15 @@ class Peers:
 
     async def close_all(self, reason: str = "drain") -> None:
         await asyncio.gather(*(p.close(reason) for p in list(self.peers.values())), return_exceptions=True)
+
+    async def drain(self, timeout: float) -> None:
+        """The end of a server's drain, once the engine has ended every session: each peer sends its final status
+        and closes itself (within :data:`FLUSH_SECONDS`); whatever is still open after that, or after ``timeout``
+        if sooner, is closed here, so no peer connection outlives the server."""
+        deadline = time.monotonic() + min(timeout, FLUSH_SECONDS + 0.25)
+        while self.peers and time.monotonic() < deadline:
+            await asyncio.sleep(0.02)
+        await self.close_all("drain")
 
 
 def _cap_bitrate(max_bps: int) -> None:
