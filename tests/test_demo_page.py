@@ -51,6 +51,11 @@ const img = document.getElementById('view');
 return [parseInt(img.dataset.index || '0', 10), img.getAttribute('src') || ''];
 """
 
+DECODED = """
+const img = document.getElementById('view');
+return img.complete && img.naturalWidth ? [img.naturalWidth, img.naturalHeight] : null;
+"""
+
 
 def _wait(drv: webdriver.Chrome, what: str, condition: Callable[[webdriver.Chrome], object]) -> object:
     """WebDriverWait that fails with what the page shows (status, stats, console) instead of a bare timeout."""
@@ -111,7 +116,9 @@ def test_demo_page_streams_frames_and_follows_sliders(live_server, driver, tmp_p
     _idle_off(driver)  # a new frame below is the new pose's, not the idle motion's
     index0, src0 = driver.execute_script(VIEW_STATE)
     assert index0 >= 1
-    assert src0.startswith("data:image/jpeg;base64,")
+    # the frame's JPEG (the client module's Frame.data) as a blob: URL, decoded at the stream's size
+    assert src0.startswith("blob:"), src0
+    _wait(driver, "the frame decoded", lambda d: d.execute_script(DECODED) == [512, 512])
 
     # Controls: the avatar picker chose the fixture's avatar (or one of them), sliders were built from the header.
     assert driver.find_element(By.ID, "avatar").get_attribute("value")
@@ -196,7 +203,7 @@ def test_jaw_open_drives_the_jawopen_expression_within_the_training_range(open_h
     # one coefficient: the jawOpen row shows what the jaw slider set
     assert jaw_row.get_attribute("value") == "0.4"
     assert jaw_row.find_element(By.XPATH, "../output").text == "0.40"
-    _wait(driver, "the image of the open jaw", lambda d: d.execute_script(VIEW_STATE)[0] >= frame["index"]
+    _wait(driver, "the image of the open jaw", lambda d: d.execute_script(VIEW_STATE)[0] >= int(frame["index"])
           and d.execute_script(VIEW_STATE)[1] != src0)
     assert driver.execute_script(VIEW_STATE)[0] > index0
 

@@ -6,8 +6,9 @@
   and is cancelled with the page's Cancel button; a second short job succeeds, its curves and preview show, "Open in
   demo" opens the trained avatar in /demo; a job is deleted from the page (with its confirm). The page follows the
   job by server-sent events where the server has ``/v1/jobs/{id}/events`` and by polling where it has not yet.
-- Against a small scripted HTTP server that speaks the events contract (``id:`` / ``event:`` / ``data:``): the
-  page's own SSE reader (fetch + ReadableStream, the API key sent as a Bearer header, which EventSource cannot do)
+- Against a small scripted HTTP server that speaks the events contract (``id:`` / ``event:`` / ``data:``) and serves
+  the page with the client module it imports (service/static/client/): the module's SSE reader (fetch +
+  ReadableStream, the API key sent as a Bearer header, which EventSource cannot do)
   parses events in odd pieces and CRLF lines, resumes with ``Last-Event-ID`` after a dropped connection, shows the
   preview beside its ground truth, and keeps the key for the browser session.
 
@@ -292,6 +293,8 @@ class ScriptedJobs:
                 pass
 
             def _note(self) -> None:
+                if self.path.startswith("/static/"):  # the page's own files: not API requests
+                    return
                 with script.lock:
                     script.requests.append((self.command, self.path, self.headers.get("Authorization"),
                                             self.headers.get("Last-Event-ID")))
@@ -315,6 +318,8 @@ class ScriptedJobs:
                     self._send(200, PAGE.read_bytes(), "text/html")
                 elif path == "/static/app/theme.css":  # the pages' shared stylesheet, as the app serves it
                     self._send(200, (PAGE.parent / "theme.css").read_bytes(), "text/css")
+                elif re.fullmatch(r"/static/app/client/[a-z]+\.js", path):  # the client module the page imports
+                    self._send(200, (PAGE.parent / "client" / path.rsplit("/", 1)[1]).read_bytes(), "text/javascript")
                 elif path == "/v1/jobs":
                     self._json(200, {"jobs": [script.job()], "next_cursor": None})
                 elif path == base:

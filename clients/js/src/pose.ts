@@ -21,7 +21,12 @@ export function cameraJson(camera: Camera): Record<string, unknown> {
     return { opencv: { k: flat(camera.K), r: flat(camera.R ?? [1, 0, 0, 0, 1, 0, 0, 0, 1]), t: camera.t ?? [0, 0, 0],
       width: camera.width, height: camera.height } };
   }
-  return { orbit: { yawDeg: camera.yaw ?? 0, pitchDeg: camera.pitch ?? 0, distance: camera.distance ?? 0 } };
+  // only the fields given (protobuf's JSON leaves zeros out; an absent field is 0 to the server)
+  const orbit: Record<string, number> = {};
+  if (camera.yaw !== undefined) orbit.yawDeg = camera.yaw;
+  if (camera.pitch !== undefined) orbit.pitchDeg = camera.pitch;
+  if (camera.distance !== undefined) orbit.distance = camera.distance;
+  return { orbit };
 }
 
 export function frameJson(index: number, pose: Pose): Record<string, unknown> {

@@ -31,6 +31,10 @@ export interface StreamHeader {
   height: number;
   codec: string;
   maxInFlight: number;
+  gaussians: number;
+  /** the retargeting adapter in use ("" when none) and, with one, the order of positional coefficients */
+  adapterId: string;
+  sourceNames: string[];
 }
 
 export interface Frame {
@@ -46,7 +50,7 @@ export interface Frame {
   dropped: number;
 }
 
-export interface FinalStatus { code: string; framesSent: number; dropped: number }
+export interface FinalStatus { code: string; message: string; framesSent: number; dropped: number }
 
 type Item = { msg: any } | { closed: { code: number; reason: string } };
 
@@ -104,12 +108,18 @@ export class RenderStream {
       const h = first.header;
       stream.header = { sessionId: h.sessionId, avatarId: h.avatarId, expressionNames: h.expressionNames ?? [],
         jointNames: h.jointNames ?? [], width: h.width, height: h.height, codec: h.codec,
-        maxInFlight: h.maxInFlight };
+        maxInFlight: h.maxInFlight, gaussians: Number(h.gaussians ?? 0), adapterId: h.adapterId ?? "",
+        sourceNames: h.sourceNames ?? [] };
     } catch (e) {
       stream.close();
       throw e;
     }
     return stream;
+  }
+
+  /** How the WebSocket closed (code, reason), once it has; null while it is open. */
+  get closed(): { code: number; reason: string } | null {
+    return this.closedItem && "closed" in this.closedItem ? this.closedItem.closed : null;
   }
 
   private push(item: Item): void {
@@ -124,7 +134,7 @@ export class RenderStream {
       const left = deadline - Date.now();
       if (left <= 0) throw timeoutError(`no reply from the stream within ${timeoutMs} ms`);
       await new Promise<void>((resolve) => {
-        const timer = setTimeout(resolve, left);
+        const timer = setTimeout(resolve, Math.min(left, 2 ** 31 - 1)); // Infinity: wait for good
         this.waiter = () => { clearTimeout(timer); resolve(); };
       });
       this.waiter = null;
@@ -146,8 +156,9 @@ export class RenderStream {
     return this.index;
   }
 
-  /** The next frame (acknowledged), or null once the stream ended; a refused pose throws its typed error (the
-   * stream goes on), a failed stream its final status. */
+  /** The next frame (acknowledged), or null once the stream ended (`final` holds the final status, `closed` how
+   * the WebSocket closed); a refused pose throws its typed error (the stream goes on), a failed stream its final
+   * status. `timeoutMs` (default: the stream's) may be Infinity. */
   async receive(timeoutMs?: number): Promise<Frame | null> {
     const msg = await this.next(timeoutMs ?? this.timeoutMs);
     if (msg === null) return null;
@@ -157,7 +168,8 @@ export class RenderStream {
     }
     if (msg.status) {
       const s = msg.status;
-      this.final = { code: s.code ?? "OK", framesSent: Number(s.framesSent ?? 0), dropped: Number(s.dropped ?? 0) };
+      this.final = { code: s.code ?? "OK", message: s.message ?? "", framesSent: Number(s.framesSent ?? 0),
+        dropped: Number(s.dropped ?? 0) };
       if (s.code && s.code !== "OK") throw fromStatus(s);
       return null;
     }
