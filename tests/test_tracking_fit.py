@@ -47,8 +47,11 @@ def test_rodrigues_and_its_inverse_agree():
 def test_the_shipped_correspondence_is_what_the_builder_makes():
     shipped = load_correspondence(SHIPPED)
     built, report = build_correspondence()
-    assert np.array_equal(shipped.landmarks, built.landmarks) and np.array_equal(shipped.triangles, built.triangles)
-    assert np.allclose(shipped.barycentric, built.barycentric, atol=1e-5)
+    assert np.array_equal(shipped.landmarks, built.landmarks)
+    # the same surface points; a point on an edge may be named through either triangle that shares the edge (weight
+    # 0 on the third vertex), and which one the builder picks can flip between machines
+    template = open_head().template.double()
+    assert torch.allclose(shipped.points(template), built.points(template), atol=1e-6)
     assert not set(FACE_OVAL) & set(shipped.landmarks.tolist())
     assert list(shipped.landmarks[-2:]) == [468, 469] and len(shipped.landmarks) > 350
     assert report["residual_px_max"] < 8.0  # in the front view, after the multi-view refinement (measured 6.0 px)
@@ -103,12 +106,30 @@ def test_the_fit_recovers_the_known_tracking(tracked):
     figures = known_answer(model, truth, read_dataset(out).tracking)
     print("known answer, 16 frames at 256 px:", {k: round(v, 2) for k, v in figures.items()}, report)
     # Figures at 256 px (goal: 1.5 px at 512, i.e. 0.75 px here; floor 2.5 px at 512): see the docs
-    # measured (every skin vertex, as the check counts): 1.16 px median (about 2.3 px at 512), rotation 1.13 deg
-    # median, jaw 1.0 deg; before the calibrated correspondence 1.54 px and 2.8 deg
+    # measured (every skin vertex, as the check counts): 1.06 px median (about 2.1 px at 512), rotation 0.95 deg
+    # median, jaw 1.0 deg; landmark fit alone 1.16 px and 1.13 deg; before the calibrated correspondence 1.54 px
+    # and 2.8 deg
     assert figures["median_vertex_px"] < 1.6
     assert figures["median_head_rotation_deg"] < 2.0
     assert figures["median_jaw_deg"] < 3.0
     assert report["reprojection_px"] < 1.0
+
+
+def test_the_photometric_refinement_lowers_the_pose_error(tracked, tmp_path):
+    """The same clip tracked with the landmark fit alone: the refined poses (the fixture's, the default) are closer
+    to the truth. Measured, 16 frames at 256 px: 1.16 -> 1.06 px, rotation 1.13 -> 0.95 deg; 60 frames at 512 px:
+    seed 41 2.50 -> 1.97 px and 1.67 -> 1.25 deg, seed 57 1.85 -> 1.05 px and 1.13 -> 0.31 deg."""
+    from render_core.tracking.track import track_video
+
+    truth, out, _ = tracked
+    report = track_video(out.parent / "clip.mp4", tmp_path / "landmarks-only", size=256, crop="none",
+                         photometric=False)
+    assert report["frames_kept"] == 16
+    model = open_head()
+    refined = known_answer(model, truth, read_dataset(out).tracking)
+    plain = known_answer(model, truth, read_dataset(tmp_path / "landmarks-only").tracking)
+    assert refined["median_head_rotation_deg"] < plain["median_head_rotation_deg"] - 0.05, (refined, plain)
+    assert refined["median_vertex_px"] < plain["median_vertex_px"], (refined, plain)
 
 
 @pytest.mark.slow
@@ -119,10 +140,11 @@ def test_the_fit_recovers_longer_clips_at_512(tmp_path, seed):
     figures = known_answer(open_head(), truth, read_dataset(tmp_path / "out").tracking)
     print(f"known answer, seed {seed}, 60 frames at 512 px:", {k: round(v, 2) for k, v in figures.items()},
           report["timing_ms"], report["frames_per_second"])
-    # Measured (seeds 41, 57; every skin vertex): 2.5 / 1.85 px median (the floor is 2.5 px, the goal 1.5 px),
-    # rotation 1.67 / 1.12 deg median, jaw 1.8 / 0.9 deg median, 28-40 frames/s landmarks + fit. Regression bounds:
-    assert figures["median_vertex_px"] < 3.0
-    assert figures["median_head_rotation_deg"] < 2.2
+    # Measured (seeds 41, 57; every skin vertex): 1.97 / 1.05 px median (the floor is 2.5 px, the goal 1.5 px),
+    # rotation 1.25 / 0.31 deg median, jaw 1.8 / 0.9 deg median (landmark fit alone: 2.50 / 1.85 px, 1.67 / 1.13
+    # deg). Regression bounds:
+    assert figures["median_vertex_px"] < 2.5
+    assert figures["median_head_rotation_deg"] < 1.8
     assert figures["median_jaw_deg"] < 3.0
 
 

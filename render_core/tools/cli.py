@@ -540,7 +540,8 @@ def cmd_track(args: argparse.Namespace) -> int:
 
 
     report = track_video(args.video, args.out, fps=args.fps, size=args.size, crop=args.crop,
-                         max_seconds=args.max_seconds, progress=stderr_progress, focal=args.focal)
+                         max_seconds=args.max_seconds, progress=stderr_progress, focal=args.focal,
+                         photometric=args.photometric == "on")
     if args.json:
         _emit(report, indent=None)
     else:
@@ -562,6 +563,9 @@ def _add_track_command(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--focal", type=float, default=None,
                    help="the focal length in pixels of the output frames, when known (e.g. from the phone's "
                         "metadata, scaled to --size); default: estimated from the landmarks")
+    s.add_argument("--photometric", choices=("on", "off"), default="on",
+                   help="refine the head poses on the frames' pixels after the landmark fit (default on; off for a "
+                        "video whose light changes strongly as the head turns)")
     s.add_argument("--json", action="store_true", help="one JSON line on stdout")
     s.set_defaults(fn=cmd_track)
 

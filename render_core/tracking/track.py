@@ -64,7 +64,7 @@ def _sheet(tiles: list[np.ndarray], path: Path) -> Path:
 def track_video(video: str | os.PathLike, out: str | os.PathLike, *, fps: float | None = None, size: int = 512,
                 crop: str = "auto", max_seconds: float | None = None, threads: int | None = 1,
                 progress: Callable[[str], None] | None = None, limits: VideoLimits | None = None,
-                min_frames: int = MIN_FRAMES, focal: float | None = None) -> dict:
+                min_frames: int = MIN_FRAMES, focal: float | None = None, photometric: bool = True) -> dict:
     """Track ``video`` into the dataset folder ``out`` (module docstring); returns the report: frames_kept,
     frames_dropped (count and runs with reasons), reprojection_px (median over the kept frames), focal, faces (the
     most seen at once, frames with several: the largest was tracked), timing_ms.
@@ -72,13 +72,15 @@ def track_video(video: str | os.PathLike, out: str | os.PathLike, *, fps: float 
     ``progress`` gets ``"<step>: <detail>"`` lines (steps ``landmarks`` - every 5% of the frames -, ``fit``,
     ``write``; no paths in them) and may raise to stop the tracking (a cancelled job). ``limits``: the video's
     (default :class:`~.video.VideoLimits`). ``focal``: the focal length in pixels of the output frames when it is
-    known (a phone records it), instead of searching it from the landmarks (:func:`~.fit.search_focal`). Fewer
+    known (a phone records it), instead of searching it from the landmarks (:func:`~.fit.search_focal`).
+    ``photometric``: refine the head poses on the frames' pixels after the landmark fit (:mod:`.photometric`). Fewer
     than ``min_frames`` frames with a face is a ``TrackingError`` on
     ``frames`` (too short)."""
     from ..data.generate import held_out_count
     from ..data.portable import Tracking, write_dataset
     from ..facemodel.open_head import open_head
     from .fit import fit_frames
+    from .photometric import refine_poses
     from .segment import head_matte, person_probability
 
     if crop not in CROPS:
@@ -123,9 +125,16 @@ def track_video(video: str | os.PathLike, out: str | os.PathLike, *, fps: float 
     principal = tuple(window.to_crop(np.array([[W / 2, H / 2]]))[0])
     fit = fit_frames(model, landmarks[kept], iris[kept], size, size, principal=principal, focal=focal,
                      threads=threads)
+    n = len(kept)
+    where = {int(f): k for k, f in enumerate(kept)}
+    if photometric:
+        say(f"fit: refining {n} poses on the pixels")
+        decode_before = timing["decode"]
+        fit = refine_poses(model, fit, landmarks[kept], iris[kept], _grey_chunks(reader, max_seconds, where, window,
+                                                                                  timing), threads=threads)
+        t0 += timing["decode"] - decode_before  # the second decode counts as decoding
     timing["fit"] = time.perf_counter() - t0
 
-    n = len(kept)
     n_test = held_out_count(n) if n >= 2 else 0
     tracking = Tracking(
         face_model=model.name, expression_names=list(model.expression_names), joint_names=list(model.joint_names),
@@ -141,7 +150,6 @@ def track_video(video: str | os.PathLike, out: str | os.PathLike, *, fps: float 
     say(f"write: {n} frames")
     t_write = time.perf_counter()
     decode_before = timing["decode"]
-    where = {int(f): k for k, f in enumerate(kept)}
 
     def frames_out() -> Iterator[np.ndarray]:
         for i, frame in enumerate(_frames(reader, max_seconds)):
@@ -174,6 +182,29 @@ def track_video(video: str | os.PathLike, out: str | os.PathLike, *, fps: float 
         "timing_ms": {k: round(1000 * v, 1) for k, v in timing.items()},
         "frames_per_second": {"landmarks_and_fit": round(len(track.status) / max(timing["landmarks"]
                                                                                  + timing["fit"], 1e-9), 1)}}
+
+
+def _grey_chunks(reader: VideoReader, max_seconds: float | None, where: dict[int, int], window,
+                 timing: dict[str, float]) -> Iterator[tuple[list[int], np.ndarray]]:
+    """The kept frames decoded again, cut to the training crop and turned grey, in chunks of
+    :data:`~.photometric.CHUNK` frames: (their indices among the kept frames, ``[n, H, W]`` float32)."""
+    from .photometric import CHUNK, grey
+
+    idx: list[int] = []
+    images: list[np.ndarray] = []
+    t0 = time.perf_counter()
+    for i, frame in enumerate(_frames(reader, max_seconds)):
+        k = where.get(i)
+        if k is not None:
+            idx.append(k)
+            images.append(grey(crop_frame(frame.rgb, window)))
+        if len(idx) == CHUNK:
+            timing["decode"] += time.perf_counter() - t0
+            yield idx, np.stack(images)
+            idx, images, t0 = [], [], time.perf_counter()
+    timing["decode"] += time.perf_counter() - t0
+    if idx:
+        yield idx, np.stack(images)
 
 
 def track_points(fit) -> np.ndarray:
