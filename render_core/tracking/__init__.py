@@ -13,7 +13,8 @@ to frame, re-detected when lost, short gaps interpolated and long ones reported.
 
 Stage 3, fitting (:mod:`.correspond`, :mod:`.fit`): the open head fitted to the landmarks through a fixed, shipped
 landmark-to-surface correspondence - focal length on keyframes, then per frame head pose and the 52 expressions
-(jaw = jawOpen, gaze = eyeLook*, as ``data synth`` writes them), batched Gauss-Newton in torch. Identity: the open
+(jaw = jawOpen, gaze = eyeLook*, as ``data synth`` writes them), batched Gauss-Newton in torch; then the head
+pose refined on the frames' own pixels (:mod:`.photometric`: the skin's grey levels held constant). Identity: the open
 head has no shape basis, so its template is kept (the tracked-video format has no identity offsets yet). Stage 4
 (:mod:`.track`, ``blendsplat track``): the dataset in the tracked-video format, head mattes as masks, the last 15%
 held out, and a contact sheet of the fitted points.
