@@ -109,6 +109,22 @@ def test_the_head_matte_keeps_the_head_and_drops_the_body(astronaut):
     assert prob[20, 20] < 0.1  # the flag behind
 
 
+def test_the_head_matte_keeps_the_neck_but_not_the_shoulders_beside_it(astronaut):
+    """Below the chin only a neck's width is kept (the selfie model paints shoulders, even under a floating head)."""
+    face = find_face(astronaut)
+    lm = face.landmarks[:, :2]
+    chin_y, width = lm[:, 1].max(), lm[:, 0].max() - lm[:, 0].min()
+    centre_x, height = (lm[:, 0].max() + lm[:, 0].min()) / 2, lm[:, 1].max() - lm[:, 1].min()
+    prob = np.ones((512, 512), np.float32)  # a person everywhere: only the head's limits cut it
+    matte = head_matte(prob, face.landmarks)
+    below = int(chin_y + 0.1 * height)
+    assert matte[below, int(centre_x)] > 0.99  # the neck under the chin
+    assert matte[below, int(centre_x + 0.7 * width)] == 0.0 and matte[below, int(centre_x - 0.7 * width)] == 0.0
+    above = int(chin_y - 0.3 * height)
+    assert matte[above, int(centre_x + 0.7 * width)] > 0.99  # beside the face (ears, hair) stays
+    assert matte[int(chin_y + 0.35 * height), int(centre_x)] == 0.0  # the chest
+
+
 def test_no_face_is_a_named_error():
     blank = np.full((256, 256, 3), 90, np.uint8)
     with pytest.raises(TrackingError) as e:
