@@ -115,6 +115,10 @@ def test_upload_train_watch_cancel_and_open_a_trained_avatar(driver, tmp_path, t
         # keys are on (the default): the server created its admin key at first start; the page keeps the key it
         # is given for the browser session (sessionStorage, as the page's "Use" button stores it: the key test
         # below clicks it), so it is put there first and the page never answers a 401
+        # without a key the list says it could not be loaded (not "loading…" for ever) and why
+        driver.get(f"{up.url}/jobs")
+        _wait(driver, "the list's failure", lambda d: "not loaded" in _text(d, "jobs"), log=log)
+        assert "API key is required" in driver.find_element(By.ID, "jobs-error").text
         driver.get(f"{up.url}/healthz")
         driver.execute_script("sessionStorage.setItem('blendsplat.apiKey', arguments[0])",
                               (tmp_path / "data" / "admin.key").read_text().strip())
