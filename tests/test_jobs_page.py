@@ -119,6 +119,7 @@ def test_upload_train_watch_cancel_and_open_a_trained_avatar(driver, tmp_path, t
         driver.get(f"{up.url}/jobs")
         _wait(driver, "the list's failure", lambda d: "not loaded" in _text(d, "jobs"), log=log)
         assert "API key is required" in driver.find_element(By.ID, "jobs-error").text
+        driver.get_log("browser")  # read (and so cleared): that 401 was the point
         driver.get(f"{up.url}/healthz")
         driver.execute_script("sessionStorage.setItem('blendsplat.apiKey', arguments[0])",
                               (tmp_path / "data" / "admin.key").read_text().strip())
