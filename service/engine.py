@@ -33,6 +33,8 @@ unloaded and uploaded through :meth:`Engine.list_avatars`, :meth:`Engine.avatar_
 :meth:`Engine.unload` and :meth:`Engine.replace`, retargeting adapters through :meth:`Engine.list_adapters`,
 :meth:`Engine.adapter_info`, :meth:`Engine.put_adapter` and :meth:`Engine.delete_adapter`: the ownership rules and
 the audit are applied here, once for every transport. The cache and the stores are the engine's own.
+A transport that encodes frames itself (WebRTC's video track) takes them through ``Session.frame_sink`` instead of
+``responses()``, their pixels uncopied.
 """
 
 from __future__ import annotations
@@ -155,6 +157,10 @@ class Session:
         self.input_done = False
         self.closed = False
         self.release_slot = no_release  # the key's stream slot (Engine.open sets it)
+        # A transport that takes its frames itself (WebRTC's video track) sets this: each frame is then handed to it
+        # on the loop as it is delivered, a RenderedFrame without data plus the pixels as the encoder made them, not
+        # queued for responses() (which keeps errors and the final status). It must not raise.
+        self.frame_sink: Callable[[pb.RenderedFrame, bytes], None] | None = None
         self._replies: asyncio.Queue[pb.StreamResponse | None] = asyncio.Queue()
         self._queued_errors = 0
 
@@ -247,10 +253,13 @@ class Session:
             m = self.engine.metrics
             m.frames.labels(self.out.codec).inc()
             m.frame_bytes.labels(self.out.codec).inc(len(result.data))
-            self._replies.put_nowait(pb.StreamResponse(frame=pb.RenderedFrame(
-                index=job.index, client_time_us=job.client_time_us, codec=self.out.codec_enum,
-                width=self.out.width, height=self.out.height, data=result.data, timings=result.timings,
-                dropped=self.dropped)))
+            fields = {"index": job.index, "client_time_us": job.client_time_us, "codec": self.out.codec_enum,
+                      "width": self.out.width, "height": self.out.height, "timings": result.timings,
+                      "dropped": self.dropped}
+            if self.frame_sink is not None:  # the pixels to a local sink: no copy into a message, no queue hop
+                self.frame_sink(pb.RenderedFrame(**fields), result.data)
+            else:
+                self._replies.put_nowait(pb.StreamResponse(frame=pb.RenderedFrame(data=result.data, **fields)))
         self._maybe_finish()
 
     def error(self, status: pb.Status) -> None:

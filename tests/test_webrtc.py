@@ -9,6 +9,8 @@ from __future__ import annotations
 import asyncio
 import re
 import time
+from fractions import Fraction
+from types import SimpleNamespace
 
 import httpx
 import numpy as np
@@ -16,7 +18,7 @@ import pytest
 from conftest import LiveServer
 
 from service.errors import InvalidArgument
-from service.webrtc import ice
+from service.webrtc import encoder, ice
 from service.webrtc.client import WhepClient, match_indices
 from service.webrtc.sdp import check_offer, parse_codecs, parse_fragment
 
@@ -101,6 +103,142 @@ def test_offers_are_checked_naming_the_sdp_problem_and_foreign_candidates_are_dr
         parse_codecs("av1")
 
 
+def _moving_frames(count: int, size: int = 64) -> list:
+    """RGBA video frames on the track's clock (30 fps): a smooth gradient and a disc that moves a pixel a frame."""
+    import av
+
+    y, x = np.mgrid[0:size, 0:size]
+    frames = []
+    for k in range(count):
+        rgba = np.zeros((size, size, 4), np.uint8)
+        rgba[..., 0], rgba[..., 1], rgba[..., 3] = x * 255 // size, y * 255 // size, 255
+        rgba[(x - 20 - k) ** 2 + (y - 32) ** 2 < 100, 2] = 220
+        frame = av.VideoFrame.from_ndarray(rgba, format="rgba")
+        frame.pts, frame.time_base = k * 3000, Fraction(1, 90_000)
+        frames.append(frame)
+    return frames
+
+
+def test_the_h264_encoder_is_libx264_ultrafast_on_one_thread_measured_keyframes_on_request_and_follows_the_bitrate():
+    import av
+    from aiortc.codecs import h264
+
+    enc = encoder.H264Encoder()
+    decoder = av.CodecContext.create("h264", "r")
+    frames = _moving_frames(6)
+    nal_types, psnrs = [], []
+    for k, frame in enumerate(frames):
+        nals = list(enc._encode_frame(frame, force_keyframe=k == 4))  # a PLI's keyframe on the fifth
+        nal_types.append({n[0] & 0x1F for n in nals})
+        if k == 0:
+            first = nals
+        reference = frame.reformat(format="yuv420p").to_ndarray(format="rgb24")  # what 4:2:0 itself keeps
+        for decoded in decoder.decode(av.Packet(b"".join(b"\x00\x00\x00\x01" + n for n in nals))):
+            mse = np.mean((decoded.to_ndarray(format="rgb24").astype(float) - reference) ** 2)
+            psnrs.append(10 * np.log10(255 ** 2 / max(mse, 1e-6)))
+    sei = next(n for n in first if n[0] & 0x1F == 6).decode("latin-1")  # x264 writes its settings there
+    for setting in ("subme=0", "me=dia", "ref=1", "deblock=1:0:0", "threads=1", "sliced_threads=0", "bframes=0",
+                    "rc=abr"):  # ultrafast, with the loop filter on; one thread, no slices; aiortc's bitrate control
+        assert f" {setting} " in sei, (setting, sei)
+    assert enc.opened == 1
+    assert 5 in nal_types[0] and 5 not in nal_types[1] and 5 in nal_types[4]  # IDR first and when asked only
+    assert len(psnrs) == len(frames) and min(psnrs) > 35  # one frame out per frame in (zerolatency), near the input
+    payloads, _ = enc.encode(frames[5])  # aiortc's entry: RTP payloads, measured
+    assert payloads and all(len(p) <= h264.PACKET_MAX for p in payloads)
+    assert enc.last.pts == frames[5].pts and enc.last.wall_ms > 0 and enc.last.cpu_ms >= 0
+    start = enc.codec.bit_rate  # the receiver's estimate: a change of more than 10 % opens a new encoder at it
+    enc.target_bitrate = int(start * 1.05)
+    enc.encode(frames[0])
+    assert enc.opened == 1
+    enc.target_bitrate = h264.MIN_BITRATE
+    enc.encode(frames[1])
+    assert enc.opened == 2 and enc.codec.bit_rate == h264.MIN_BITRATE
+
+
+def test_a_sender_gets_this_services_encoder_for_its_codec_before_it_makes_its_own():
+    from aiortc import RTCRtpSender
+    from aiortc.mediastreams import VideoStreamTrack
+
+    async def run():
+        transport = SimpleNamespace(state="new")  # a DTLS transport not yet started: all the sender reads of it
+        senders = {codec: RTCRtpSender(VideoStreamTrack(), transport) for codec in ("H264", "VP8", "opus")}
+        for codec, sender in senders.items():
+            encoder.install(sender, codec)
+        assert isinstance(encoder.encoder_of(senders["H264"]), encoder.H264Encoder)
+        assert isinstance(encoder.encoder_of(senders["VP8"]), encoder.Vp8Encoder)
+        assert encoder.encoder_of(senders["opus"]) is None  # not a video codec here: aiortc makes its own
+        kept = encoder.encoder_of(senders["H264"])
+        encoder.install(senders["H264"], "H264")
+        assert encoder.encoder_of(senders["H264"]) is kept
+        assert encoder.cost_of(senders["H264"], 0) is None  # nothing encoded yet
+
+    asyncio.run(run())
+
+
+@pytest.mark.parametrize("width, height", [(64, 48), (130, 70)])  # 130: FFmpeg pads the RGBA rows
+def test_the_track_hands_the_newest_frame_in_one_reused_rgba_buffer_and_acknowledges_each(width, height):
+    import av
+
+    from service.webrtc.track import FrameTrack, Pending
+
+    done, sent = [], []
+    rng = np.random.default_rng(0)
+    images = [rng.integers(0, 256, (height, width, 4), dtype=np.uint8) for _ in range(3)]
+
+    async def run():
+        track = FrameTrack(width, height, lambda frame, now: sent.append(frame.index), done.append)
+        track.put(Pending(1, 0, images[0].tobytes(), None))
+        track.put(Pending(2, 0, images[1].tobytes(), None))  # replaces frame 1 before the encoder takes it
+        first = await track.recv()
+        assert np.array_equal(first.to_ndarray(format="rgba"), images[1]) and done == [1, 2] and not sent
+        first.pict_type = av.video.frame.PictureType.I  # what an encoder sets for a keyframe
+        track.put(Pending(3, 0, images[2].tobytes(), None))
+        second = await track.recv()
+        assert second is first and second.pict_type == av.video.frame.PictureType.NONE  # the same buffer, refilled
+        assert np.array_equal(second.to_ndarray(format="rgba"), images[2]) and second.pts > 0
+        assert done == [1, 2, 3] and sent == [2] and track.replaced == 1
+        track.stop()
+
+    asyncio.run(run())
+
+
+POSE = ('{"frame": {"index": 7, "clientTimeUs": 1700000000123456, "coefficients": [0.5, 0, 1, -0.25], '
+        '"joints": {"neck": {"values": [0.1, -0.2, 0.0]}, "jaw": {"values": [0.3, 0, 0]}}}}')
+
+
+@pytest.mark.parametrize("text, plain", [
+    (POSE, True), ('{"frame": {"index": 3}}', True), ('{"frame": {}}', True),
+    ('{"frame": {"index": 3, "coefficients": [1, 2.5, -3e38]}}', True),
+    ('{"frame": {"index": "3"}}', False), ('{"frame": {"index": 3, "client_time_us": 5}}', False),
+    ('{"frame": {"index": 3, "coefficients": [true, 0.5]}}', False),
+    ('{"frame": {"index": 3, "coefficients": [1e39]}}', False),
+    ('{"frame": {"index": 3, "coefficients": [NaN]}}', False),
+    ('{"frame": {"index": 3, "coefficients": ["0.5"]}}', False), ('{"frame": {"index": 2.0}}', False),
+    ('{"frame": {"index": -1}}', False), ('{"frame": {"index": 18446744073709551616}}', False),
+    ('{"frame": {"index": 3, "index": 4}}', False), ('{"frame": {"index": 3, "joints": {"neck": {}}}}', False),
+    ('{"frame": {"index": 3, "joints": {"neck": {"values": [0, 0], "x": 1}}}}', False),
+    ('{"frame": {"index": 3, "camera": {"preset": "front"}}}', False), ('{"frame": null}', False),
+    ('{"ack": {"index": 2}}', False), ('{"frame": {"index": 3}, "ack": {"index": 1}}', False), ('[1, 2]', False),
+    ("not json", False), ('{"frame": {"index": 3, "coefficients": [0.5], "bogus": 1}}', False),
+])
+def test_a_plain_json_pose_is_read_without_json_format_and_every_message_parses_as_json_format_does(text, plain):
+    from google.protobuf import json_format
+
+    from blendsplat.v1 import render_pb2 as pb
+    from service.webrtc import messages
+
+    def outcome(parse):
+        try:
+            return parse(text)
+        except Exception as e:  # noqa: BLE001 - the refusal is compared
+            return f"{type(e).__name__}: {e}"
+
+    assert (messages._plain_pose(text) is not None) == plain
+    assert outcome(messages.parse) == outcome(lambda t: json_format.Parse(t, pb.StreamRequest()))
+    binary = pb.StreamRequest(ack=pb.Ack(index=4))
+    assert messages.parse(binary.SerializeToString()) == binary
+
+
 def test_turn_credentials_are_corturns_use_auth_secret_scheme():
     import base64
     import hashlib
@@ -163,6 +301,11 @@ def test_a_python_client_gets_frames_that_change_with_the_expression_and_delete_
         assert neutral and smiling and neutral[-1].shape == (128, 128, 3)
         assert neutral[-1].std() > 5  # a head on a background, not a blank frame
         assert np.abs(neutral[-1].astype(float) - smiling[-1].astype(float)).mean() > 0.5
+        (peer,) = server.service.app.state.webrtc.peers.values()
+        used = encoder.encoder_of(peer.transceiver.sender)  # aiortc's sender encodes with this service's encoder
+        assert isinstance(used, encoder.ENCODERS[codec.upper()]) and used.last is not None
+        for t in client.timings:  # the encoder's own time and CPU per frame, within the hand-off to the packets
+            assert 0 < t["frame"]["timings"]["encodeMs"] <= t["video"]["sendMs"] and t["video"]["encodeCpuMs"] >= 0
         await client.close()  # DELETE, then the peer connection's close
     asyncio.run(run())
     assert wait_until(lambda: gauge(server) == 0, 3.0)

@@ -3,15 +3,21 @@ and the process's sessions (:class:`Peers`).
 
 - The engine session is opened like a WebSocket's (the key's stream limit, the server's session limit, the
   avatar's read rule), with the ``raw_rgba`` codec: its frames go to the :class:`~.track.FrameTrack`, whose
-  encoder is aiortc's. Frames come from the one scheduler and render thread as every other stream's.
+  encoder is aiortc's sender's (the classes of :mod:`.encoder`: H.264 at a fast libx264 preset). Frames come from
+  the one scheduler and render thread as every other stream's.
 - The data channel carries the WebSocket stream's messages: the client sends ``StreamRequest`` as protobuf JSON
   (text) or protobuf (binary), ``frame`` and ``end`` (the session is open already: ``open`` is refused), validated
   by the same session code; the server sends JSON: the session's ``header`` once the channel is open, an ``error``
   per refused message, the final ``status``, and per frame sent on the video track a ``frame`` (a
-  ``RenderedFrame`` without data: index, client time, timings, where ``encode_ms`` is the video encoder's and
-  ``total_ms`` runs from the pose's receipt to its RTP packets) with ``video``: ``{"pts", "codec", "waitMs"}``.
-- Flow: the track acknowledges a frame to the engine when it hands it to the encoder or drops it for a newer one,
-  so the engine renders as fast as the peer takes frames, and newest wins at both ends.
+  ``RenderedFrame`` without data: index, client time, timings, where ``encode_ms`` is the video encoder's call
+  for this frame (RGBA to YUV, the codec, RTP packetisation; wall time) and ``total_ms`` runs from the pose's
+  receipt to its RTP packets) with ``video``: ``{"pts", "codec", "waitMs"`` (rendered to handed to the encoder),
+  ``"sendMs"`` (handed to the encoder to its RTP packets sent: the executor's queue, the encode, the sending),
+  ``"encodeCpuMs"}`` (the encoder call's CPU time: the encode cost).
+- Flow: the engine hands each rendered frame to the track as it is delivered (the session's ``frame_sink``: the
+  pixels as the render thread made them, no protobuf copy, no queue); the track acknowledges a frame to the engine
+  when it hands it to the encoder or drops it for a newer one, so the engine renders as fast as the peer takes
+  frames, and newest wins at both ends.
 - Closing (:meth:`Peer.close`, once): the peer connection's failure or close (ICE, DTLS, the client's close), no
   connection within ``webrtc_connect_seconds``, nothing heard from the peer (RTCP receiver reports, data-channel
   messages) for ``webrtc_peer_timeout_seconds``, ``DELETE``, the data channel closed by the client, and the end of
@@ -37,7 +43,7 @@ from blendsplat.v1 import render_pb2 as pb
 from ..access.auth import Principal
 from ..engine import Engine, Session
 from ..errors import InvalidArgument, NotFound, to_status
-from . import ice
+from . import encoder, ice, messages
 from .sdp import check_offer, parse_codecs
 from .track import FrameTrack, Pending
 
@@ -59,8 +65,10 @@ class Peer:
         self.key_id = session.principal.key_id
         out = session.out
         self.track = FrameTrack(out.width, out.height, self._sent, self._done)
+        session.frame_sink = self._frame  # rendered frames straight to the track (not through responses())
         self.codecs = codecs
         self.codec = ""  # negotiated
+        self.transceiver = None
         self.channel = None
         self.outbox: list[str] = []
         self.created = self.heard = time.monotonic()
@@ -72,7 +80,7 @@ class Peer:
     # ---------------------------------------------------------------------------------------------- set-up
     async def negotiate(self, offer: str) -> str:
         pc = self.pc
-        transceiver = pc.addTransceiver(self.track, direction="sendonly")
+        transceiver = self.transceiver = pc.addTransceiver(self.track, direction="sendonly")
         capabilities = RTCRtpSender.getCapabilities("video").codecs
         preferred = [c for name in self.codecs for c in capabilities if c.mimeType.lower() == f"video/{name.lower()}"]
         transceiver.setCodecPreferences(preferred + [c for c in capabilities if c.mimeType.lower() == "video/rtx"])
@@ -85,6 +93,7 @@ class Peer:
         await pc.setLocalDescription(await pc.createAnswer())  # gathers the host (and STUN) candidates
         self.codec = next((c.mimeType.split("/")[1] for c in transceiver._codecs  # the one aiortc sends with
                            if not c.mimeType.lower().endswith("/rtx")), "")
+        encoder.install(transceiver.sender, self.codec)  # H.264: libx264 set for several streams (encoder.py)
         self._tasks = [asyncio.create_task(self._pump(), name=f"webrtc-pump-{self.id}"),
                        asyncio.create_task(self._watch(), name=f"webrtc-watch-{self.id}")]
         return pc.localDescription.sdp
@@ -137,8 +146,7 @@ class Peer:
                 f"the message is {len(data)} bytes; the limit is {self.peers.engine.settings.max_message_bytes}",
                 field="message")))
         try:
-            request = (json_format.Parse(data, pb.StreamRequest()) if isinstance(data, str)
-                       else pb.StreamRequest.FromString(data))
+            request = messages.parse(data)  # a plain pose without json_format's walk
         except (json_format.ParseError, DecodeError, RecursionError, ValueError, TypeError) as e:
             return self.session.error(to_status(InvalidArgument(
                 f"not a blendsplat.v1.StreamRequest: {str(e)[:300]}", field="message")))
@@ -150,9 +158,10 @@ class Peer:
             self.session.handle(pb.StreamRequest(ack=pb.Ack(index=index)))
 
     def _sent(self, frame: Pending, now: float) -> None:
+        cost = encoder.cost_of(self.transceiver.sender, frame.pts) if self.transceiver else None
         t = pb.StageTimings()
         t.CopyFrom(frame.timings)
-        t.encode_ms = (now - frame.handed) * 1e3
+        t.encode_ms = cost.wall_ms if cost else (now - frame.handed) * 1e3
         t.total_ms = frame.timings.total_ms + (now - frame.arrived) * 1e3
         reply = pb.StreamResponse(frame=pb.RenderedFrame(
             index=frame.index, client_time_us=frame.client_time_us, width=self.track.width,
@@ -160,20 +169,23 @@ class Peer:
             codec=pb.CODEC_H264 if self.codec.upper() == "H264" else pb.CODEC_UNSPECIFIED))
         body = json_format.MessageToDict(reply)
         body["video"] = {"pts": frame.pts, "codec": self.codec,
-                         "waitMs": round((frame.handed - frame.arrived) * 1e3, 3)}
+                         "waitMs": round((frame.handed - frame.arrived) * 1e3, 3),
+                         "sendMs": round((now - frame.handed) * 1e3, 3)}
+        if cost:
+            body["video"]["encodeCpuMs"] = round(cost.cpu_ms, 3)
         self.send(json.dumps(body, separators=(",", ":")))
 
+    def _frame(self, f: pb.RenderedFrame, data: bytes) -> None:
+        """The engine's frame sink (on the loop, as the frame is delivered): to the track, newest wins."""
+        self.track.put(Pending(f.index, f.client_time_us, data, f.timings, f.dropped))
+
     async def _pump(self) -> None:
+        """The session's other replies (errors, the final status) to the data channel; then the close."""
         final = None
         async for reply in self.session.responses():
-            kind = reply.WhichOneof("msg")
-            if kind == "frame":
-                f = reply.frame
-                self.track.put(Pending(f.index, f.client_time_us, f.data, f.timings, f.dropped))
-            else:
-                self.send(_json(reply))
-                if kind == "status":
-                    final = reply.status
+            self.send(_json(reply))
+            if reply.WhichOneof("msg") == "status":
+                final = reply.status
         if self.closed:
             return
         if final is not None and self.channel is not None:
@@ -228,6 +240,8 @@ class Peer:
         if self.closed:
             return
         self.closed = True
+        log.info("webrtc session %s closed (%s): %d frames sent, %d replaced by a newer one before encoding",
+                 self.id, reason, self.track.sent, self.track.replaced)
         self.peers.forget(self, reason)
         self.peers.engine.close_session(self.session)  # no-op when it has ended
         self.track.stop()
