@@ -176,3 +176,39 @@ def postgres_database(pg_admin_user, prefix: str = "blendsplat_test"):
     finally:
         with psycopg.connect(host=PG_HOST, port=PG_PORT, dbname="test", user=user, autocommit=True) as admin:
             admin.execute(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)')
+
+
+@pytest.fixture
+def coturn(tmp_path) -> Iterator[tuple[str, str]]:
+    """coturn (Debian's turnserver) on 127.0.0.1 only, use-auth-secret, loopback peers allowed, relay ports in a
+    small range: (its ``turn:`` URL, the shared secret); skipped without it (the WebRTC relay tests)."""
+    import shutil
+    import socket
+    import subprocess
+    import time
+
+    binary = shutil.which("turnserver")
+    if binary is None:
+        pytest.skip("coturn is not installed: apt-get install -y coturn")
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    low, secret = 49160 + port % 1000 * 10, "coturn-test-secret"
+    log = tmp_path / "turnserver.log"
+    process = subprocess.Popen(
+        [binary, "-n", "--listening-ip=127.0.0.1", "--relay-ip=127.0.0.1", f"--listening-port={port}",
+         f"--min-port={low}", f"--max-port={low + 9}", "--use-auth-secret", f"--static-auth-secret={secret}",
+         "--realm=blendsplat", "--allow-loopback-peers", "--no-cli", "--no-tls", "--no-dtls", "--fingerprint",
+         f"--pidfile={tmp_path / 'turnserver.pid'}", "--log-file=stdout", "--simple-log"],
+        stdout=log.open("w"), stderr=subprocess.STDOUT)
+    try:
+        time.sleep(0.5)
+        if process.poll() is not None:
+            pytest.fail(f"turnserver exited: {log.read_text()[-2000:]}")
+        yield f"turn:127.0.0.1:{port}?transport=udp", secret
+    finally:
+        process.terminate()
+        try:
+            process.wait(5)
+        except subprocess.TimeoutExpired:
+            process.kill()

@@ -11,7 +11,6 @@ node tests say (a typed NOT_FOUND naming its field). Needs Debian's chromium and
 from __future__ import annotations
 
 import re
-import shutil
 import time
 from pathlib import Path
 
@@ -166,39 +165,6 @@ def test_a_page_of_the_server_imports_the_module_and_streams_with_it(live_server
 
 
 # ------------------------------------------------------------------------------------------- WebRTC through TURN
-@pytest.fixture
-def turn(tmp_path):
-    """coturn (Debian's turnserver) on 127.0.0.1 with use-auth-secret, loopback peers allowed; skipped without it."""
-    import socket
-    import subprocess
-
-    binary = shutil.which("turnserver")
-    if binary is None:
-        pytest.skip("coturn is not installed: apt-get install -y coturn")
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
-        probe.bind(("127.0.0.1", 0))
-        port = probe.getsockname()[1]
-    low, secret = 49500 + port % 1000 * 10, "pages-module-secret"
-    log = tmp_path / "turnserver.log"
-    process = subprocess.Popen(
-        [binary, "-n", "--listening-ip=127.0.0.1", "--relay-ip=127.0.0.1", f"--listening-port={port}",
-         f"--min-port={low}", f"--max-port={low + 9}", "--use-auth-secret", f"--static-auth-secret={secret}",
-         "--realm=blendsplat", "--allow-loopback-peers", "--no-cli", "--no-tls", "--no-dtls", "--fingerprint",
-         f"--pidfile={tmp_path / 'turnserver.pid'}", "--log-file=stdout", "--simple-log"],
-        stdout=log.open("w"), stderr=subprocess.STDOUT)
-    try:
-        time.sleep(0.5)
-        if process.poll() is not None:
-            pytest.fail(f"turnserver exited: {log.read_text()[-2000:]}")
-        yield f"turn:127.0.0.1:{port}?transport=udp", secret
-    finally:
-        process.terminate()
-        try:
-            process.wait(5)
-        except subprocess.TimeoutExpired:
-            process.kill()
-
-
 RELAY_BY_LINK = """
 const done = arguments[arguments.length - 1];
 (async () => {
@@ -227,12 +193,12 @@ const done = arguments[arguments.length - 1];
 
 
 @pytest.mark.slow
-def test_webrtc_without_ice_servers_relays_through_the_turn_server_of_the_link_headers(tmp_path, turn):
+def test_webrtc_without_ice_servers_relays_through_the_turn_server_of_the_link_headers(tmp_path, coturn):
     """The caller passes no iceServers and allows relay candidates only: the module reads the TURN server (and its
     short-lived credentials) from the 201's WHEP Link headers and offers again through it; frames arrive over it."""
     from conftest import LiveServer, chromium
 
-    turn_url, secret = turn
+    turn_url, secret = coturn  # the conftest's coturn on 127.0.0.1
     s = LiveServer(tmp_path / "data", webrtc_host_addresses=["127.0.0.1"], webrtc_turn_urls=[turn_url],
                    webrtc_turn_secret=secret)
     browser = chromium(tmp_path / "profile", "--allow-loopback-in-peer-connection",

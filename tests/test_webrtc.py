@@ -465,44 +465,6 @@ def test_chromium_shows_the_avatar_as_a_webrtc_track_driven_by_the_demo_sliders(
 
 
 # ---------------------------------------------------------------------------------------------- through TURN
-def _free_udp_port() -> int:
-    import socket
-
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-@pytest.fixture
-def coturn(tmp_path):
-    """coturn (Debian's turnserver) on 127.0.0.1 only, use-auth-secret, loopback peers allowed; skipped without it."""
-    import shutil
-    import subprocess
-
-    binary = shutil.which("turnserver")
-    if binary is None:
-        pytest.skip("coturn is not installed: apt-get install -y coturn")
-    port, secret = _free_udp_port(), "coturn-test-secret"
-    low = 49160 + port % 1000 * 10
-    process = subprocess.Popen(
-        [binary, "-n", "--listening-ip=127.0.0.1", "--relay-ip=127.0.0.1", f"--listening-port={port}",
-         f"--min-port={low}", f"--max-port={low + 9}", "--use-auth-secret", f"--static-auth-secret={secret}",
-         "--realm=blendsplat", "--allow-loopback-peers", "--no-cli", "--no-tls", "--no-dtls", "--fingerprint",
-         f"--pidfile={tmp_path / 'turnserver.pid'}", "--log-file=stdout", "--simple-log"],
-        stdout=(tmp_path / "turnserver.log").open("w"), stderr=subprocess.STDOUT)
-    try:
-        time.sleep(0.5)
-        if process.poll() is not None:
-            pytest.fail(f"turnserver exited: {(tmp_path / 'turnserver.log').read_text()[-2000:]}")
-        yield f"turn:127.0.0.1:{port}?transport=udp", secret
-    finally:
-        process.terminate()
-        try:
-            process.wait(5)
-        except subprocess.TimeoutExpired:
-            process.kill()
-
-
 @pytest.mark.slow
 def test_a_relay_only_client_streams_through_coturn_on_loopback(tmp_path, coturn):
     from service.webrtc.client import ice_servers_of
