@@ -129,6 +129,16 @@ def skew(v: torch.Tensor) -> torch.Tensor:
     return torch.stack([o, -z, y, z, o, -x, -y, x, o], -1).reshape(v.shape[:-1] + (3, 3))
 
 
+def projection(Xc: torch.Tensor, f: float, c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Camera points ``[N, M, 3]`` -> pixels ``[N, M, 2]`` and d(pixels)/d(camera point) ``[N, M, 2, 3]``
+    (``f / z [[1, 0, -x/z], [0, 1, -y/z]]``)."""
+    z = Xc[..., 2:3]
+    dU = torch.zeros(Xc.shape[:-1] + (2, 3), dtype=Xc.dtype)
+    dU[..., 0, 0] = dU[..., 1, 1] = f / z[..., 0]
+    dU[..., :, 2] = -f * Xc[..., :2] / (z * z)
+    return f * Xc[..., :2] / z + c, dU
+
+
 def jacobian(dU: torch.Tensor, R: torch.Tensor, X: torch.Tensor, Bt: torch.Tensor | None) -> torch.Tensor:
     """The reprojection's Jacobian ``[N, L, 2, 6 (+ K)]``: rotation (a step on the right), translation and, with
     ``Bt [L, 3, K]``, the expressions; ``dU [N, L, 2, 3]`` = d(u, v)/d(camera point), ``X [N, L, 3]`` the points.
@@ -160,15 +170,10 @@ def solve(problem: Problem, obs: torch.Tensor, f: float, c: torch.Tensor, p: tor
     for _ in range(iterations):
         R = R0 @ Rh  # [N, 3, 3]
         X = problem.anchors(p[:, :3]) + torch.einsum("nk,klc->nlc", p[:, 6:], problem.B)  # [N, L, 3]
-        Xc = X @ R.transpose(1, 2) + p[:, None, 3:6]
-        z = Xc[..., 2:3]
-        r = (f * Xc[..., :2] / z + c - obs)  # [N, L, 2]
+        u, dU = projection(X @ R.transpose(1, 2) + p[:, None, 3:6], f, c)
+        r = u - obs  # [N, L, 2]
         err = r.norm(dim=-1)
         w = w_pts * torch.clamp(huber_px / err.clamp_min(1e-9), max=1.0)  # IRLS Huber weights [N, L]
-        # d(u, v)/dXc: f / z [[1, 0, -x/z], [0, 1, -y/z]]  -> [N, L, 2, 3]
-        dU = torch.zeros(n, L, 2, 3, dtype=torch.float64)
-        dU[..., 0, 0] = dU[..., 1, 1] = (f / z[..., 0])
-        dU[..., :, 2] = -f * Xc[..., :2] / (z * z)
         J = jacobian(dU, R, X, problem.Bt if active > 6 else None).reshape(n, 2 * L, active)
         wr = w.repeat_interleave(2, dim=1)
         JtW = J.transpose(1, 2) * wr[:, None, :]

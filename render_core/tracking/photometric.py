@@ -33,7 +33,7 @@ import numpy as np
 import torch
 import torch.nn.functional as nnf
 
-from .fit import R0, FitResult, Problem, jacobian, matrix_to_axis_angle, rodrigues
+from .fit import R0, FitResult, Problem, jacobian, matrix_to_axis_angle, projection, rodrigues
 
 CHUNK = 96  # frames refined together (their colours shared): ~130 MB of float32 image pyramid
 POINTS = 1500
@@ -88,15 +88,6 @@ def _sample(image: torch.Tensor, u: torch.Tensor, scale: int) -> torch.Tensor:
     return torch.stack([v[:, 0], (v[:, 1] - v[:, 2]) / (2 * scale), (v[:, 3] - v[:, 4]) / (2 * scale)], -1)
 
 
-def _projection(Xc: torch.Tensor, f: float, c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Camera points ``[N, M, 3]`` -> pixels ``[N, M, 2]`` and d(pixels)/d(camera point) ``[N, M, 2, 3]``."""
-    z = Xc[..., 2:3]
-    dU = torch.zeros(Xc.shape[:-1] + (2, 3), dtype=Xc.dtype)
-    dU[..., 0, 0] = dU[..., 1, 1] = f / z[..., 0]
-    dU[..., :, 2] = -f * Xc[..., :2] / (z * z)
-    return f * Xc[..., :2] / z + c, dU
-
-
 def refine_chunk(problem: Problem, model, p: torch.Tensor, obs: torch.Tensor, images: np.ndarray, f: float,
                  c: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
     """One chunk: ``p [N, 58]`` (rotation, translation, expressions, as :func:`.fit.solve` has them), its landmark
@@ -113,7 +104,7 @@ def refine_chunk(problem: Problem, model, p: torch.Tensor, obs: torch.Tensor, im
         for step in range(steps):
             R = R0 @ Rh
             Xc = X @ R.transpose(1, 2) + p[:, None, 3:6]
-            u, dU = _projection(Xc, f, c)
+            u, dU = projection(Xc, f, c)
             facing = -((normals[None] @ R.transpose(1, 2)) * nnf.normalize(Xc, dim=-1)).sum(-1)
             seen = (facing > MIN_FACING) & (u[..., 0] > margin) & (u[..., 0] < W - margin) & (u[..., 1] > margin) \
                 & (u[..., 1] < H - margin)
@@ -128,7 +119,7 @@ def refine_chunk(problem: Problem, model, p: torch.Tensor, obs: torch.Tensor, im
             Hm = PHOTOMETRIC_WEIGHT * torch.einsum("nmp,nm,nmq->npq", J, w, J)
             g = PHOTOMETRIC_WEIGHT * torch.einsum("nmp,nm,nm->np", J, w, r)
             Xl = problem.anchors(p[:, :3]) + Xl_expr
-            ul, dUl = _projection(Xl @ R.transpose(1, 2) + p[:, None, 3:6], f, c)
+            ul, dUl = projection(Xl @ R.transpose(1, 2) + p[:, None, 3:6], f, c)
             rl = ul - obs
             wl = torch.clamp(1.5 / rl.norm(dim=-1).clamp_min(1e-9), max=1.0)
             Jl = jacobian(dUl, R, Xl, None)  # [N, L, 2, 6]
