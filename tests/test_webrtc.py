@@ -398,7 +398,7 @@ def test_a_drain_sends_the_final_status_on_the_data_channel_then_closes(tmp_path
 
 
 # ------------------------------------------------------------------------------------------- in Chromium
-VIDEO_SUM = """
+VIDEO_PIXELS = """
 const v = document.getElementById('video');
 if (!v.videoWidth) return null;
 const c = document.createElement('canvas');
@@ -406,6 +406,8 @@ c.width = v.videoWidth; c.height = v.videoHeight;
 const ctx = c.getContext('2d');
 ctx.drawImage(v, 0, 0);
 const d = ctx.getImageData(0, 0, c.width, c.height).data;
+"""  # the shown video frame's RGBA bytes in d (null before the first)
+VIDEO_SUM = VIDEO_PIXELS + """
 let sum = 0, sq = 0;
 for (let i = 0; i < d.length; i += 4) { const g = d[i] + d[i + 1] + d[i + 2]; sum += g; sq += g * g; }
 const n = d.length / 4;
@@ -526,14 +528,7 @@ const timer = setInterval(() => {
   if (++sent >= count) { clearInterval(timer); setTimeout(() => done(page.next - 1), 1000); }
 }, 1000 / 30);
 """
-RELAY_PIXELS = """
-const v = document.getElementById('video');
-if (!v.videoWidth) return null;
-const c = document.createElement('canvas');
-c.width = v.videoWidth; c.height = v.videoHeight;
-const ctx = c.getContext('2d');
-ctx.drawImage(v, 0, 0);
-const d = ctx.getImageData(0, 0, c.width, c.height).data;
+RELAY_PIXELS = VIDEO_PIXELS + """
 const grey = [];
 for (let i = 0; i < d.length; i += 4) grey.push(d[i] + d[i + 1] + d[i + 2]);
 return grey;
