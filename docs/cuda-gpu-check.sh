@@ -5,6 +5,7 @@
 # exists, so a run cut short still returns what it finished.
 # Usage, from the repository root: OUT=dir bash docs/cuda-gpu-check.sh [CARRY_DIR (default gpu-carry)] [STEPS]
 #   STEPS: a space-separated subset of "setup tests bench train" (default: all).
+#   FUSES (environment): the render cases' fuse modes, default "graph off compile" ("off" runs the sparse layout).
 set -uo pipefail
 carry="${1:-gpu-carry}"
 steps="${2:-setup tests bench train}"
@@ -41,7 +42,7 @@ if has bench; then
         || log "bench $name failed: $(tail -2 "$out/$name.err")"; }
     D="--gaussians 64000 --blendshapes 50"; O="--bundle /tmp/open-head.bsplat"
     # before (eager stages over the stored pairs) and after (dense matrix, one CUDA graph; torch.compile's kernels)
-    for fuse in graph off compile; do
+    for fuse in ${FUSES:-graph off compile}; do
         L=$([ $fuse = off ] && echo sparse || echo dense)
         [ $fuse = graph ] && T="--trace /tmp/trace-dense-1.json" || T=""
         run render-dense-1-$fuse $B render $A $D --fuse $fuse --layout $L --frames 300 --warmup 30 $T

@@ -6,6 +6,7 @@ say why the backend is missing. Without a GPU, tests/test_cuda_conventions.py ch
 gsplat's own code on the CPU."""
 
 import json
+import math
 import sys
 
 import numpy as np
@@ -196,6 +197,38 @@ def test_training_on_cuda_lowers_the_loss(tmp_path):
     first, last = np.mean([r["loss"] for r in lines[:5]]), np.mean([r["loss"] for r in lines[-5:]])
     print(f"cuda training: loss {first:.4f} -> {last:.4f}, {summary['ms_per_iteration']} ms per iteration")
     assert summary["device"] == "cuda" and summary["bundle"] and last < 0.7 * first
+
+
+@pytest.mark.cuda
+@gpu
+def test_training_on_cuda_keeps_the_whole_step_on_the_gpu(tmp_path):
+    """Model, optimizer state, densification statistics and targets live on the GPU through densification; the
+    checkpoint resumes on the CPU; the stage split is printed for the report."""
+    from render_core.data.generate import synth_dataset
+    from render_core.facemodel.open_head import open_head
+    from render_core.train import get_preset
+    from render_core.train.trainer import Trainer
+
+    head = open_head()
+    synth_dataset(tmp_path / "data", frames=6, size=64, seed=1, facemodel=head)
+    preset = get_preset("tiny").with_(gaussians=400, mouth=40, sh_every=5, checkpoint_every=1000, log_every=1,
+                                      densify_from=1, densify_every=4, densify_until=20, densify_grad=2e-4,
+                                      prune_big_after=8, max_screen_radius=8.0)
+    trainer = Trainer(tmp_path / "data", tmp_path / "work", preset, device="cuda", facemodel=head, iterations=24)
+    trainer.run()
+    tensors = dict(trainer.model.named_parameters()) | dict(trainer.model.named_buffers())
+    assert all(t.is_cuda for t in tensors.values()), [k for k, t in tensors.items() if not t.is_cuda]
+    assert trainer.model.pose_correctives is None or trainer.model.pose_correctives.is_cuda
+    moments = [v for st in trainer.optimizer.state.values() for v in st.values() if torch.is_tensor(v)]
+    assert moments and all(v.is_cuda for v in moments)
+    assert trainer.strategy.grad_accum.is_cuda and trainer.strategy.max_radii.is_cuda
+    assert sum(d["cloned"] + d["split"] for d in trainer.summary()["densified"]) > 0
+    print("cuda training stage ms:", trainer.summary()["stage_ms"])
+    path = trainer.checkpoint()
+    on_cpu = Trainer(tmp_path / "data", tmp_path / "work2", preset, device="cpu", facemodel=head, iterations=26)
+    on_cpu.resume(path)
+    assert on_cpu.iteration == 24 and not on_cpu.model.means.is_cuda
+    assert math.isfinite(on_cpu.step().losses["loss"])
 
 
 @pytest.mark.cuda

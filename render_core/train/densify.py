@@ -84,35 +84,45 @@ class DensifyStrategy:
     def __init__(self, n: int, extent: float, *, refine_from: int = 500, refine_until: int = 15_000,
                  refine_every: int = 100, grad_threshold: float = 1e-3, prune_opacity: float = 0.005,
                  max_gaussians: int = 200_000, prune_big_after: int = 3000,
-                 max_screen_radius: float = MAX_SCREEN_RADIUS, grid: LookupGrid | None = None):
+                 max_screen_radius: float = MAX_SCREEN_RADIUS, grid: LookupGrid | None = None,
+                 device: torch.device | str = "cpu"):
         self.extent = float(extent)
         self.refine_from, self.refine_until, self.refine_every = refine_from, refine_until, max(refine_every, 1)
         self.grad_threshold, self.prune_opacity, self.max_gaussians = grad_threshold, prune_opacity, max_gaussians
         self.prune_big_after, self.max_screen_radius = prune_big_after, max_screen_radius
         self.grid = grid  # where children and moved Gaussians get their LBS weights and d (None: their parent's)
-        self.grad_accum = torch.zeros(n)
-        self.denom = torch.zeros(n)
-        self.max_radii = torch.zeros(n)  # the largest screen radius (pixels) since the last refinement
+        self.device = torch.device(device)  # the model's: the statistics live beside it
+        self._reset(n)
         self._posed: Splats | None = None  # this iteration's posed splats, between the two hooks
 
+    def _reset(self, n: int) -> None:
+        """A new interval of statistics for ``n`` Gaussians."""
+        self.grad_accum = torch.zeros(n, device=self.device)
+        self.denom = torch.zeros(n, device=self.device)
+        self.max_radii = torch.zeros(n, device=self.device)  # the largest screen radius (px) since the last refine
+
     @classmethod
-    def from_preset(cls, preset: Preset, n: int, extent: float, grid: LookupGrid | None = None) -> DensifyStrategy:
-        """The preset's schedule and thresholds (``densify=False``: a strategy that never collects nor refines)."""
+    def from_preset(cls, preset: Preset, n: int, extent: float, grid: LookupGrid | None = None,
+                    device: torch.device | str = "cpu") -> DensifyStrategy:
+        """The preset's schedule and thresholds (``densify=False``: a strategy that never collects nor refines);
+        ``device``: the model's."""
         return cls(n, extent, refine_from=preset.densify_from,
                    refine_until=preset.densify_until if preset.densify else 0, refine_every=preset.densify_every,
                    grad_threshold=preset.densify_grad, prune_opacity=preset.prune_opacity,
                    max_gaussians=preset.max_gaussians, prune_big_after=preset.prune_big_after,
-                   max_screen_radius=preset.max_screen_radius, grid=grid)
+                   max_screen_radius=preset.max_screen_radius, grid=grid, device=device)
 
     def state(self) -> dict:
         return {"extent": self.extent, "grad_accum": self.grad_accum.clone(), "denom": self.denom.clone(),
                 "max_radii": self.max_radii.clone()}
 
     def load_state(self, state: dict) -> None:
-        """The statistics of :meth:`state` (a checkpoint's)."""
+        """The statistics of :meth:`state` (a checkpoint's, saved on any device)."""
         self.extent = float(state["extent"])
-        self.grad_accum, self.denom = state["grad_accum"].clone(), state["denom"].clone()
-        self.max_radii = state["max_radii"].clone() if "max_radii" in state else torch.zeros_like(self.denom)
+        dev = self.device
+        self.grad_accum, self.denom = state["grad_accum"].to(dev, copy=True), state["denom"].to(dev, copy=True)
+        self.max_radii = (state["max_radii"].to(dev, copy=True) if "max_radii" in state
+                          else torch.zeros_like(self.denom))
 
     # ------------------------------------------------------------------------------------------- the schedule
     def collects(self, iteration: int) -> bool:
@@ -176,7 +186,7 @@ class DensifyStrategy:
         with torch.no_grad():
             scale = model.log_scales.detach().exp().amax(1)
             prune = torch.sigmoid(model.opacity_logits.detach()) < self.prune_opacity
-            screen = torch.zeros(n, dtype=torch.bool)
+            screen = torch.zeros(n, dtype=torch.bool, device=self.device)
             if prune_big:
                 prune |= scale > 0.1 * self.extent
                 if len(self.max_radii) == n:
@@ -188,7 +198,7 @@ class DensifyStrategy:
             # Each clone adds one Gaussian, each split one net (two children replace the parent).
             if int(chosen.sum()) > room:
                 order = torch.argsort(torch.where(chosen, avg, -1.0), descending=True, stable=True)
-                keep_chosen = torch.zeros(n, dtype=torch.bool)
+                keep_chosen = torch.zeros(n, dtype=torch.bool, device=self.device)
                 keep_chosen[order[:room]] = True
                 chosen &= keep_chosen
             clone = chosen & ~big
@@ -196,13 +206,13 @@ class DensifyStrategy:
             keep = ~prune & ~split
             keep_idx, clone_idx, split_idx = (m.nonzero().flatten() for m in (keep, clone, split))
             src = torch.cat([keep_idx, clone_idx, split_idx, split_idx])
-            fresh = torch.cat([torch.zeros(len(keep_idx), dtype=torch.bool),
-                               torch.ones(len(clone_idx) + 2 * len(split_idx), dtype=torch.bool)])
+            fresh = torch.cat([torch.zeros(len(keep_idx), dtype=torch.bool, device=self.device),
+                               torch.ones(len(clone_idx) + 2 * len(split_idx), dtype=torch.bool, device=self.device)])
             updates = {}
             if len(split_idx):
                 s = model.log_scales.detach()[split_idx].exp()
                 rot = quat_to_matrix(torch.nn.functional.normalize(model.quats.detach()[split_idx], dim=-1))
-                samples = torch.randn(2, len(split_idx), 3, generator=gen) * s
+                samples = torch.randn(2, len(split_idx), 3, generator=gen).to(s) * s  # drawn on the CPU
                 offsets = (rot @ samples.unsqueeze(-1)).squeeze(-1)  # [2, S, 3]
                 means = model.means.detach()
                 children = means[split_idx].unsqueeze(0) + offsets
@@ -222,9 +232,7 @@ class DensifyStrategy:
                     lbs, d = grid.lookup(model.means.detach()[idx])
                     assign_surface(model, opt, idx, lbs, d)
                 looked_up = len(idx)
-        self.grad_accum = torch.zeros(model.num_gaussians)
-        self.denom = torch.zeros(model.num_gaussians)
-        self.max_radii = torch.zeros(model.num_gaussians)
+        self._reset(model.num_gaussians)
         return {"cloned": len(clone_idx), "split": len(split_idx), "pruned": int(prune.sum()),
                 "pruned_screen": int(screen.sum()), "looked_up": looked_up, "gaussians": model.num_gaussians}
 
@@ -235,8 +243,9 @@ def _expand_pairs(pair_n: Tensor, src: Tensor, n_old: int) -> tuple[Tensor, Tens
     count = torch.bincount(src, minlength=n_old)
     start = torch.cumsum(count, 0) - count
     rep = count[pair_n]
-    old_pair = torch.repeat_interleave(torch.arange(len(pair_n)), rep)
-    offset = torch.arange(len(old_pair)) - torch.repeat_interleave(torch.cumsum(rep, 0) - rep, rep)
+    old_pair = torch.repeat_interleave(torch.arange(len(pair_n), device=pair_n.device), rep)
+    offset = (torch.arange(len(old_pair), device=pair_n.device)
+              - torch.repeat_interleave(torch.cumsum(rep, 0) - rep, rep))
     child = order[start[pair_n[old_pair]] + offset]
     return old_pair, child
 
@@ -334,8 +343,8 @@ def assign_surface(model: TrainableAvatar, opt: torch.optim.Optimizer, index: Te
             found = old_key[pos] == new_key
             src = order[pos]
         else:
-            found = torch.zeros(len(new_key), dtype=torch.bool)
-            src = torch.zeros(len(new_key), dtype=torch.long)
+            found = torch.zeros(len(new_key), dtype=torch.bool, device=new_key.device)
+            src = torch.zeros(len(new_key), dtype=torch.long, device=new_key.device)
 
         def carry(t: Tensor) -> Tensor:
             out = t.new_zeros(len(new_key), *t.shape[1:])

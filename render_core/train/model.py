@@ -164,6 +164,15 @@ class TrainableAvatar(nn.Module):
         return {"tensors": tensors, "parameters": [k for k, _ in self.named_parameters()],
                 "consistency": self.consistency, "eps": self.eps, "d_max": self.d_max, "meta": self.meta}
 
+    def _apply(self, fn, recurse: bool = True):
+        """``.to(device)`` and the like move the pose correctives and eyelid offsets (plain attributes) too."""
+        super()._apply(fn, recurse)
+        for name in ("pose_correctives", "eyelid_offsets"):
+            t = getattr(self, name)
+            if t is not None:
+                setattr(self, name, fn(t))
+        return self
+
     # ------------------------------------------------------------------------------------------------ state
     @property
     def num_gaussians(self) -> int:

@@ -178,16 +178,34 @@ def raster_step(device: str) -> raster.Differentiable:
                           f"{raster.unavailable_reason(backend)}", field="device") from None
 
 
+def torch_device(device: str) -> torch.device:
+    """Where training's tensors live for ``device``: the CPU, or the cuda backend's GPU (model, frames, targets,
+    loss, Adam and the densification statistics all stay there; only the frame-sampling generator is the CPU's)."""
+    if device == "cuda":
+        from ..raster import gsplat_backend
+
+        return gsplat_backend.device()
+    return torch.device("cpu")
+
+
+def stage_clock(device: torch.device) -> Callable[[], float]:
+    """``time.perf_counter`` that first waits for the device's queued work (on a GPU, a stage's time is the
+    kernels it launched, not the launches)."""
+    if device.type == "cuda":
+        return lambda: (torch.cuda.synchronize(device), time.perf_counter())[1]
+    return time.perf_counter
+
+
 def forward(model: TrainableAvatar, frame: Frame, cameras: Cameras, sh_degree: int | None = None, *,
             rasterize: raster.Differentiable | None = None, threads: int = 0,
-            times: dict | None = None) -> tuple[torch.Tensor, torch.Tensor, Splats]:
+            times: dict | None = None, clock: Callable[[], float] = time.perf_counter,
+            ) -> tuple[torch.Tensor, torch.Tensor, Splats]:
     """Render B frames of the model (differentiable): rgb [B, H, W, 3], alpha [B, H, W] on a black background,
     and the posed splats (face Gaussians first; densification reads them).
 
     ``rasterize``: the rasterization step (:func:`raster_step`; default the CPU's). ``times``: stage seconds
-    are added to it."""
+    (read with ``clock``, :func:`stage_clock`) are added to it."""
     rasterize = rasterize or raster_step("cpu")
-    clock = time.perf_counter
     t0 = clock()
     avatar = model.avatar(sh_degree, deltas=False)
     blended = model.blend(frame.expression, sh_degree)
@@ -208,22 +226,27 @@ def forward(model: TrainableAvatar, frame: Frame, cameras: Cameras, sh_degree: i
 
 
 class _Targets:
-    """Masked training targets, decoded once and kept (up to ``budget`` bytes)."""
+    """Masked training targets, decoded once and kept on ``device`` (up to ``budget`` bytes)."""
 
-    def __init__(self, dataset, budget: int = 2 << 30):
-        self.dataset, self.budget, self.used = dataset, budget, 0
+    def __init__(self, dataset, budget: int = 2 << 30, device: torch.device | str = "cpu"):
+        self.dataset, self.budget, self.used, self.device = dataset, budget, 0, torch.device(device)
         self.cache: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}
 
     def __call__(self, index: int) -> tuple[torch.Tensor, torch.Tensor]:
         hit = self.cache.get(index)
         if hit is not None:
             return hit
-        rgb, mask = targets(self.dataset, [index])
+        rgb, mask = (t.to(self.device) for t in targets(self.dataset, [index]))
         size = rgb.numel() * 4 + mask.numel() * 4
         if self.used + size <= self.budget:
             self.cache[index] = (rgb, mask)
             self.used += size
         return rgb, mask
+
+
+def _frames_to(frames: Frame, device: torch.device) -> Frame:
+    return Frame(frames.expression.to(device), frames.joint_rotations.to(device),
+                 None if frames.eyelids is None else frames.eyelids.to(device))
 
 
 def _select(frames: Frame, j: int) -> Frame:
@@ -295,8 +318,10 @@ class Trainer:
         data_dir: the portable dataset (frames, masks, tracking; only the training indices are trained on).
         workdir: the work folder (checkpoints, ``log.jsonl``, the report).
         preset: ``"tiny"``, ``"paper"`` or a :class:`Preset` (its schedule is the trainer's).
-        device: where the rasterization step runs: ``"cpu"`` (the native rasterizer's C++ backward) or
-            ``"cuda"`` (gsplat's CUDA forward and backward; the rest of the step stays on the CPU for now).
+        device: where training runs: ``"cpu"`` (the native rasterizer's C++ forward and backward) or ``"cuda"``
+            (the whole step on the GPU: the model, frames, targets, blend, skinning, shading, gsplat's CUDA
+            forward and backward, the loss, Adam and densification; checkpoints are device-neutral, so a run
+            resumes on either).
         seed: initialisation and frame-sampling seed.
         iterations: total iterations (default: the preset's; also overrides a resumed checkpoint's).
         facemodel: the face model (a FaceModel or a face-model file) when the dataset's is not the open head.
@@ -313,6 +338,8 @@ class Trainer:
                  facemodel: FaceModel | str | os.PathLike | None = None, consistency: str | None = None):
         self.rasterize = raster_step(device)
         self.device = device
+        self.torch_device = torch_device(device)
+        self._clock = stage_clock(self.torch_device)
         self.data_dir, self.workdir = Path(data_dir), Path(workdir)
         cfg = get_preset(preset)
         if consistency is not None:
@@ -328,7 +355,7 @@ class Trainer:
             raise DatasetError("the dataset lists no training frames", field="train")
         test = list(tracking.test)
         self.preview_index = int(test[0] if test else self.train_idx[0])  # the frame :meth:`preview` renders
-        self._targets = _Targets(self.dataset)
+        self._targets = _Targets(self.dataset, device=self.torch_device)
         self._created = time.perf_counter()
         self.iteration = 0  # the last trained iteration
         self._model: TrainableAvatar | None = None
@@ -354,17 +381,22 @@ class Trainer:
             gen.set_state(state["rng"])
             extent = float(state["densifier"]["extent"])
             start, prior = int(state["iteration"]), float(state["seconds"])
+        dev = self.torch_device
+        model = model.to(dev)
+        self.cylinder = replace(self.cylinder, centre=self.cylinder.centre.to(dev))
         opt = make_optimizer(model, cfg)
         grid = lookup_grid(fm, cfg.grid_resolution) if cfg.densify and cfg.grid_resolution else None
-        strategy = DensifyStrategy.from_preset(cfg, model.num_gaussians, extent, grid)
+        strategy = DensifyStrategy.from_preset(cfg, model.num_gaussians, extent, grid, device=dev)
         if state is not None:
             opt.load_state_dict(state["optimizer"])
             strategy.load_state(state["densifier"])
         view = model.avatar(detach=True, deltas=False)
         tracking = self.dataset.tracking
         check_compatible(view, tracking)
-        self._frames, self._cams = frame_inputs(view, tracking, self.train_idx)
-        self._preview_inputs = frame_inputs(view, tracking, [self.preview_index])
+        frames, cams = frame_inputs(view, tracking, self.train_idx)
+        self._frames, self._cams = _frames_to(frames, dev), cams.to(device=dev)
+        frames, cams = frame_inputs(view, tracking, [self.preview_index])
+        self._preview_inputs = _frames_to(frames, dev), cams.to(device=dev)
         self._model, self._optimizer, self._generator, self._strategy = model, opt, gen, strategy
         self.iteration = self._start = self._saved = start
         self._resumed = state is not None
@@ -477,7 +509,7 @@ class Trainer:
             raise RuntimeError(f"the training is complete ({self.total} iterations)")
         self._prepare_disk()
         cfg, model, opt, gen, times = self.preset, self._model, self._optimizer, self._generator, self._times
-        clock = time.perf_counter
+        clock = self._clock
         t0 = clock()
         it = self.iteration + 1
         j = int(torch.randint(len(self.train_idx), (1,), generator=gen))
@@ -490,7 +522,7 @@ class Trainer:
                 g["lr"] = xyz_lr(cfg, it)
         times["data"] += clock() - t0
         rgb, alpha, posed = forward(model, frame, cams, degree, rasterize=self.rasterize, threads=cfg.threads,
-                                    times=times)
+                                    times=times, clock=clock)
         self._strategy.step_pre_backward(it, posed)
         t1 = clock()
         loss, terms = losses.total_loss(rgb, alpha, rgb_t, mask_t, model.mouth_means, self.cylinder)
@@ -509,7 +541,8 @@ class Trainer:
         times["densify"] += clock() - t4
         self.iteration = it
         self._steps += 1
-        values = {"loss": float(loss.detach()), **{k: float(v.detach()) for k, v in terms.items()}}
+        scalars = torch.stack([loss.detach().float(), *(v.detach().float() for v in terms.values())]).tolist()
+        values = dict(zip(("loss", *terms), scalars, strict=True))  # one read from the device for the five
         step_psnr = psnr(rgb, rgb_t)
         self._seconds += clock() - t0
         self._pending = {"iteration": it, **values, "psnr": step_psnr, "frame": index, "sh_degree": degree,
