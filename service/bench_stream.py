@@ -1,8 +1,10 @@
 """`blendsplat bench stream`: a real gRPC client that drives N concurrent streams at a fixed pose rate.
 
-Each stream sends fresh random coefficients and joint rotations every 1/fps seconds, acknowledges every frame
-it receives, and measures pose-to-frame latency (from building the pose to receiving its encoded frame). The
-first ``warmup`` seconds are not counted.
+Each stream sends a pose every 1/fps seconds (``drive``, :mod:`service.bench_drive`: ``smooth``, the default,
+sinusoids under 2 Hz as a person moves, or ``random``, every frame drawn afresh), acknowledges every frame it
+receives, and measures pose-to-frame latency (from building the pose to receiving its encoded frame). The first
+``warmup`` seconds are not counted. ``verify_frames`` (``--verify N``): afterwards N of the streamed frames are
+compared with a cold render of their poses (:mod:`service.bench_verify`, ``psnr_vs_cold_db``).
 
 The report is strict JSON: a figure with no samples (no frames arrived) is null, never NaN. The server's resident
 memory (``server_rss_mb``) is read from its Prometheus endpoint (``process_resident_memory_bytes``): the
@@ -24,6 +26,8 @@ import numpy as np
 from blendsplat.v1 import render_pb2 as pb
 from blendsplat.v1 import render_pb2_grpc as pb_grpc
 
+from .bench_drive import Drive
+from .bench_verify import VERIFIABLE, Keeper, choose, keepers, verify
 from .params import CODEC_NAMES
 
 CODECS = {name: value for value, name in CODEC_NAMES.items() if value}
@@ -39,7 +43,8 @@ class ServerUnreachable(ConnectionError):
 class _Stream:
     latencies: list[float] = field(default_factory=list)
     server_ms: list[float] = field(default_factory=list)
-    stages: list[list[float]] = field(default_factory=list)  # queue, blend, lbs, raster, encode per frame
+    # queue, blend, lbs, raster, encode, batch per frame (blend, lbs and raster are the batched call's: its frames')
+    stages: list[list[float]] = field(default_factory=list)
     bytes: list[int] = field(default_factory=list)
     frames: int = 0
     errors: int = 0
@@ -48,19 +53,14 @@ class _Stream:
     messages: list[str] = field(default_factory=list)
 
 
-def _pose(rng: np.random.Generator, k: int, joints: list[str], index: int) -> pb.FrameParams:
-    coeffs = rng.uniform(0.0, 1.0, k) * (rng.uniform(0, 1, k) < 0.3)  # a few active expressions, like speech
-    rotations = {name: pb.Rotation(values=rng.normal(0, 0.08, 3).tolist()) for name in joints if name != "root"}
-    return pb.FrameParams(index=index, client_time_us=time.time_ns() // 1000, coefficients=coeffs.tolist(),
-                          joints=rotations)
-
-
 async def _run_stream(stub: pb_grpc.RenderServiceStub, avatar: str, size: int, codec: str, fps: float,
                       seconds: float, warmup: float, seed: int, ack: bool = True,
-                      api_key: str | None = None) -> _Stream:
+                      api_key: str | None = None, drive: str = "smooth", keeper: Keeper | None = None) -> _Stream:
+    """One stream; ``keeper`` (``--verify``) keeps some of its counted frames with their poses."""
     result = _Stream()
     outbox: asyncio.Queue[pb.StreamRequest | None] = asyncio.Queue()
     sent_at: dict[int, float] = {}
+    poses: dict[int, pb.FrameParams] = {}  # --verify: the pose of each frame on its way
     header_seen = asyncio.Event()
     header: dict = {}
     t_start = time.perf_counter()
@@ -72,14 +72,16 @@ async def _run_stream(stub: pb_grpc.RenderServiceStub, avatar: str, size: int, c
 
     async def tick() -> None:
         await header_seen.wait()
-        rng = np.random.default_rng(seed)
+        poser = Drive(drive, seed, header["names"], header["joints"], fps)
         period, index, t_next = 1.0 / fps, 0, time.perf_counter()
         end = time.perf_counter() + warmup + seconds
         while t_next < end:
             await asyncio.sleep(max(0.0, t_next - time.perf_counter()))
             index += 1
-            msg = _pose(rng, len(header["names"]), header["joints"], index)
+            msg = poser.pose(index)
             sent_at[index] = time.perf_counter()
+            if keeper is not None:
+                poses[index] = msg
             outbox.put_nowait(pb.StreamRequest(frame=msg))
             t_next += period
         await asyncio.sleep(0.5)  # let the last frames arrive before half-closing
@@ -106,9 +108,12 @@ async def _run_stream(stub: pb_grpc.RenderServiceStub, avatar: str, size: int, c
                     result.latencies.append((now - sent_at[f.index]) * 1e3)
                     result.server_ms.append(f.timings.total_ms)
                     t = f.timings
-                    result.stages.append([t.queue_ms, t.blend_ms, t.lbs_ms, t.raster_ms, t.encode_ms])
+                    result.stages.append([t.queue_ms, t.blend_ms, t.lbs_ms, t.raster_ms, t.encode_ms, t.batch])
                     result.bytes.append(len(f.data))
+                    if keeper is not None:
+                        keeper.offer(f.index, poses.get(f.index), f.data)
                 sent_at.pop(f.index, None)
+                poses.pop(f.index, None)
             elif kind == "error":
                 result.errors += 1
                 result.messages.append(reply.error.message)
@@ -172,23 +177,32 @@ async def _connect(channel: grpc.aio.Channel, target: str, seconds: float) -> No
 async def bench_stream(target: str, avatar: str, streams: int = 1, seconds: float = 10.0, fps: float = 30.0,
                        size: int = 512, codec: str = "jpeg", warmup: float = 1.0, seed: int = 0,
                        ack: bool = True, metrics_url: str | None = None, api_key: str | None = None,
-                       connect_seconds: float = CONNECT_SECONDS) -> dict:
+                       connect_seconds: float = CONNECT_SECONDS, drive: str = "smooth", verify_frames: int = 0) -> dict:
     """``ack=False``: readers that never acknowledge (flow control must keep the server's memory flat: the server's
     resident memory before and at the end is reported, from ``metrics_url``, by default the target host's
-    /metrics on the default HTTP port). Raises :class:`ServerUnreachable` when no server answers at ``target``
-    within ``connect_seconds``."""
+    /metrics on the default HTTP port). ``drive``: the poses (:mod:`service.bench_drive`, smooth or random).
+    ``verify_frames``: after the timed run, that many streamed frames compared with a cold render of their poses
+    (:mod:`service.bench_verify`; ``psnr_vs_cold_db``). Raises :class:`ServerUnreachable` when no server answers at
+    ``target`` within ``connect_seconds``; ValueError for a codec that cannot be verified."""
+    if verify_frames and codec not in VERIFIABLE:
+        raise ValueError(f"--verify compares frames one by one: codec {codec!r} cannot be verified (use one of "
+                         f"{', '.join(VERIFIABLE)})")
+    keep = keepers(streams, verify_frames) if verify_frames > 0 else None
+    metadata = (("authorization", f"Bearer {api_key}"),) if api_key else None
     async with grpc.aio.insecure_channel(target, options=[("grpc.max_receive_message_length", 64 << 20)]) as ch:
         await _connect(ch, target, connect_seconds)
         metrics_url = metrics_url or default_metrics_url(target)
         rss_before, rss_note = await asyncio.to_thread(_server_rss, metrics_url)
-        log.info("streaming %d stream(s) of %r from %s for %g s after a %g s warm-up", streams, avatar, target,
-                 seconds, warmup)
+        log.info("streaming %d stream(s) of %r from %s for %g s after a %g s warm-up (%s drive)", streams, avatar,
+                 target, seconds, warmup, drive)
         stub = pb_grpc.RenderServiceStub(ch)
         results = await asyncio.gather(*(
-            _run_stream(stub, avatar, size, codec, fps, seconds, warmup, seed + i, ack, api_key)
+            _run_stream(stub, avatar, size, codec, fps, seconds, warmup, seed + i, ack, api_key, drive,
+                        keep[i] if keep else None)
             for i in range(streams)))
         rss_during, note = await asyncio.to_thread(_server_rss, metrics_url)
         rss_note = rss_note or note
+        checked = await verify(stub, avatar, size, codec, choose(keep, verify_frames), metadata) if keep else None
     latencies = [x for r in results for x in r.latencies]
     server = [x for r in results for x in r.server_ms]
     sizes = [x for r in results for x in r.bytes]
@@ -202,10 +216,14 @@ async def bench_stream(target: str, avatar: str, streams: int = 1, seconds: floa
                        "max": round(max(latencies), 2) if latencies else None},
         "server_ms": {"p50": _pct(server, 50), "p99": _pct(server, 99),
                       **{f"{stage}_p50": _pct([s[i] for r in results for s in r.stages], 50)
-                         for i, stage in enumerate(("queue", "blend", "lbs", "raster", "encode"))}},
+                         for i, stage in enumerate(("queue", "blend", "lbs", "raster", "encode"))},
+                      "batch_mean": round(float(np.mean([s[5] for r in results for s in r.stages])), 2)
+                      if latencies else None},
         "bytes_per_frame": round(float(np.mean(sizes)), 1) if sizes else 0.0,
         "dropped": sum(r.dropped for r in results), "errors": sum(r.errors for r in results),
         "error_messages": sorted({m for r in results for m in r.messages})[:10],
-        "acks": ack, "server_rss_mb": {"before": rss_before, "end": rss_during}, "metrics_url": metrics_url,
+        "drive": drive, "acks": ack, "server_rss_mb": {"before": rss_before, "end": rss_during},
+        "metrics_url": metrics_url,
         **({"server_rss_note": rss_note} if rss_note else {}),
+        **({"psnr_vs_cold_db": checked.get("psnr_db_min"), "verify": checked} if checked is not None else {}),
     }

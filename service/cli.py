@@ -88,7 +88,7 @@ def cmd_bench_stream(args: argparse.Namespace) -> int:
     result = asyncio.run(bench_stream(args.target, args.avatar, streams=args.streams, seconds=args.seconds,
                                       fps=args.fps, size=args.size, codec=args.codec, warmup=args.warmup,
                                       seed=args.seed, ack=not args.no_ack, metrics_url=args.metrics_url,
-                                      api_key=args.api_key))
+                                      api_key=args.api_key, drive=args.drive, verify_frames=args.verify))
     core_cli.emit(result, indent=None if args.json else 2)
     if result.get("server_rss_note"):
         print(f"blendsplat: note: server_rss_mb is null: {result['server_rss_note']}", file=sys.stderr)
@@ -189,6 +189,7 @@ def cmd_settings(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from .bench_drive import DRIVES
     from .bench_stream import CODECS
     from .settings import Settings
 
@@ -254,6 +255,16 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--size", type=int, default=512)
     b.add_argument("--codec", choices=sorted(CODECS), default="jpeg")
     b.add_argument("--seed", type=int, default=0)
+    b.add_argument("--drive", choices=DRIVES, default="smooth",
+                   help="the poses: smooth (default), each coefficient and joint angle a sinusoid under 2 Hz with "
+                        "its own phase per stream, as a person moves; random, every frame drawn afresh")
+    b.add_argument("--verify", type=int, default=0, metavar="N",
+                   help="afterwards, render N of the streamed poses again cold (the Render RPC: one frame, no "
+                        "stream state, every CPU-cost mechanism off, lossless PNG) and report psnr_vs_cold_db, the "
+                        "lowest PSNR of a streamed frame against it; JPEG frames are compared with the cold render "
+                        "JPEG-encoded as the server encodes it, so identical pixels give 100 dB and the figure "
+                        "shows what the mechanisms change, not what JPEG loses (that is verify.psnr_vs_lossless_db)"
+                        "; not for h264")
     b.add_argument("--no-ack", action="store_true", help="readers that never acknowledge a frame (flow control)")
     b.add_argument("--metrics-url", default=None,
                    help="the server's /metrics URL, read for its resident memory before and at the end "
