@@ -18,6 +18,7 @@ import time
 from collections.abc import Iterable, Iterator
 from dataclasses import fields, replace
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -25,6 +26,7 @@ from .avatar import Avatar, Gaussians
 from .camera import Cameras
 from .deform import Frame, blend, shade, skin
 from .errors import OptionError, ShapeError
+from .media.pixels import to_rgba8
 from .packed import Pairs, SparseDeltas
 from .raster import RasterOutput, ShadedSplats, check_backend, gsplat_backend, native, render
 
@@ -208,13 +210,19 @@ class AvatarRenderer:
     before gsplat: ``"graph"`` (default) as one CUDA graph per batch size (one launch instead of a few hundred;
     their timings are one ``deform`` stage), ``"compile"`` the same over torch.compile's fused kernels, ``"off"``
     eagerly, stage by stage. A graph that cannot be captured falls back to ``"off"`` (``fuse_error`` says why).
+
+    The native backend's ``schedule`` (:class:`~render_core.raster.native.Schedule`: lazy tiles, square blocks,
+    RGBA8 straight from the compositing loop; default all on) changes its cost, never its pixels; a call may
+    override it (``schedule=Schedule.baseline()`` renders the way it was before them).
     """
 
     def __init__(self, avatar: Avatar, backend: str | None = None, *, precision: str | None = None,
-                 simd: str | None = None, threads: int = 0, layout: str = "dense", fuse: str = "graph"):
+                 simd: str | None = None, threads: int = 0, layout: str = "dense", fuse: str = "graph",
+                 schedule: native.Schedule | None = None):
         self.avatar = avatar
         self.backend = check_backend(backend)
         self.simd, self.threads = simd, threads
+        self.schedule = schedule or native.Schedule()
         if fuse not in FUSIONS:
             raise OptionError(f"must be one of {', '.join(FUSIONS)}, got {fuse!r}", field="fuse")
         self.fuse, self.fuse_error = fuse, None
@@ -253,18 +261,36 @@ class AvatarRenderer:
         given = _storages(_tensors(self.avatar))
         return held + sum(n for key, n in own.items() if key not in given)
 
-    def render(self, frame: Frame, cameras: Cameras, background: Tensor | None = None) -> RasterOutput:
-        """B frames seen by B cameras (or one camera for all); RGB, alpha, depth and ``timings`` in ms."""
+    def _cameras(self, frame: Frame, cameras: Cameras) -> Cameras:
         frame.check(self.avatar)
         b = frame.batch_size
         if len(cameras) != b:
             if len(cameras) != 1:
                 raise ShapeError(f"{b} frames need {b} cameras or one, got {len(cameras)}", field="cameras")
             cameras = cameras.expand(b)
+        return cameras
+
+    def render_rgba8(self, frame: Frame, cameras: Cameras, background: Tensor | None = None, *,
+                     schedule: native.Schedule | None = None) -> tuple[np.ndarray, dict]:
+        """B frames as 8-bit RGBA [B, H, W, 4] on the host (RGB over the background, then alpha: what encoders
+        take; bit for bit :func:`~render_core.media.pixels.to_rgba8` of :meth:`render`'s images) and the
+        timings. The native backend writes it from its compositing loop (``schedule.direct_rgba8``)."""
+        if self.native is not None:
+            cameras = self._cameras(frame, cameras)
+            return self.native.render_rgba8(frame.expression, frame.joint_rotations, frame.eyelids, cameras,
+                                            background, simd=self.simd, threads=self.threads,
+                                            schedule=schedule or self.schedule)
+        out = self.render(frame, cameras, background)
+        return to_rgba8(out.rgb, out.alpha), out.timings
+
+    def render(self, frame: Frame, cameras: Cameras, background: Tensor | None = None, *,
+               schedule: native.Schedule | None = None) -> RasterOutput:
+        """B frames seen by B cameras (or one camera for all); RGB, alpha, depth and ``timings`` in ms."""
+        cameras = self._cameras(frame, cameras)
         if self.native is not None:
             rgb, alpha, depth, timings = self.native.render(frame.expression, frame.joint_rotations, frame.eyelids,
                                                             cameras, background, simd=self.simd,
-                                                            threads=self.threads)
+                                                            threads=self.threads, schedule=schedule or self.schedule)
             return RasterOutput(rgb, alpha, depth, timings=timings)
         if self.device_avatar is not None:
             return self._render_device(frame, cameras, background)

@@ -55,7 +55,7 @@ static void backward_tile(const Splat* frame, const uint32_t* ids, int count, in
     float* sR = sL + P;
     float* sG = sR + P;
     float* sB = sG + P;
-    tile_row_spans(local.data(), count, cpad, yb, rows, scratch.data(), lo, hi);
+    tile_row_spans(local.data(), count, cpad, yb, rows, nullptr, scratch.data(), lo, hi);
 
     uint32_t maxlast = 0;
     for (int r = 0; r < kTile; ++r) {

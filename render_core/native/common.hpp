@@ -80,6 +80,25 @@ struct PosedView {
     int N;
 };
 
+// Where one tile's pixels go (frame arrays, the tile's pixels written, the rest untouched): float RGB [H, W, 3],
+// alpha and depth [H, W] and 8-bit RGBA [H, W, 4] (as to_rgba8 rounds the floats); any may be null. Training's
+// forward also writes the final transmittance T and the last contributor (1-based; 0: none) per pixel.
+struct TileOut {
+    float* rgb = nullptr;
+    float* alpha = nullptr;
+    float* depth = nullptr;
+    uint8_t* rgba8 = nullptr;
+    float* T = nullptr;
+    uint32_t* last = nullptr;
+};
+
+// Compositing schedule switches (each changes how the work is done, never a pixel: the images are bit-identical).
+enum RasterFlags : unsigned {
+    kLazyTiles = 1u,     // gather a tile's splats and their row spans a chunk at a time; stop when every pixel stopped
+    kSquareBlocks = 2u,  // blocks of 4 x 4 pixels (16 lanes; 4 x 2 with 8) instead of 8 x 2 (8 x 1)
+    kRasterDefault = kLazyTiles | kSquareBlocks,
+};
+
 struct Kernels {
     const char* name;
     // Eq. 1 blend + pose correctives + eyelids of Gaussians [n0, n1) for B frames: the row of Gaussian n in
@@ -92,9 +111,10 @@ struct Kernels {
                            int n0, int n1);
     // Projection of already posed Gaussians [n0, n1) of one frame.
     void (*project_posed)(const PosedView& pv, int b, const Cam& cam, Splat* out, int n0, int n1);
-    // Front-to-back compositing of one 16x16 tile from its splats in depth order.
-    void (*raster_tile)(const TileSplat* splats, int count, int tx, int ty, const Cam& cam,
-                        const float* background, float* rgb, float* alpha, float* depth);
+    // Front-to-back compositing of one 16x16 tile from its count splats in depth order: sorted[pos[j]] (pos null:
+    // sorted[j]), with the schedule of flags (RasterFlags).
+    void (*raster_tile)(const TileSplat* sorted, const uint32_t* pos, int count, int tx, int ty, const Cam& cam,
+                        const float* background, const TileOut& out, unsigned flags);
 };
 
 namespace scalar { const Kernels& kernels(); }

@@ -415,9 +415,10 @@ static void project_posed(const PosedView& pv, int b, const Cam& cam, Splat* out
 // ------------------------------------------------------------------------------------------------ raster
 
 // Per-row pixel spans [lo, hi] of each splat's eligibility ellipse on the row's centre line (q <= level, plus
-// 0.05 px; lo = 1e9, hi = -1e9 where empty): lo, hi are [rows][cpad]. The same arithmetic as raster_tile's.
-static void tile_row_spans(const TileSplat* splats, int count, int cpad, int yb, int rows, float* tmp, float* lo,
-                           float* hi) {
+// 0.05 px; lo = 1e9, hi = -1e9 where empty): lo, hi are [rows][cpad] (with need given, rows with need[r] false
+// are left as they are). The same arithmetic as composite_tile's.
+static void tile_row_spans(const TileSplat* splats, int count, int cpad, int yb, int rows, const bool* need,
+                           float* tmp, float* lo, float* hi) {
     float* my = tmp;
     float* xc0 = my + cpad;
     float* shear = xc0 + cpad;
@@ -435,6 +436,7 @@ static void tile_row_spans(const TileSplat* splats, int count, int cpad, int yb,
     }
     const F big = V::set1(1e9f), zero = V::set1(0.0f);
     for (int r = 0; r < rows; ++r) {
+        if (need != nullptr && !need[r]) continue;
         const F yc = V::set1(float(yb + r) + 0.5f);
         for (int c = 0; c < cpad; c += W) {
             const F dy = V::load(my + c) - yc;
@@ -450,66 +452,101 @@ static void tile_row_spans(const TileSplat* splats, int count, int cpad, int yb,
     }
 }
 
-// One 16x16 tile, in blocks of BR rows x BW columns, one vector each: 8 x 2 pixels with 16 lanes, 8 x 1 with 8
-// (a splat reaches a few pixels of a row, so a squarer block wastes fewer lanes than a 16-pixel row). First, for
-// every row and every Gaussian of the tile, the exact pixel span of its eligibility ellipse on the row's centre
-// line (tile_row_spans). Then each block scans the spans of its rows W at a time and composites only the Gaussians
-// that reach it, in depth order, branch-free, with its transmittance, colour and depth in registers, until all its
-// pixels have stopped. Every pixel's arithmetic is the same whatever the block shape: the backward (splat_alpha)
-// recomputes it row by row.
+// x in [0, 1] (clamped) -> uint8 as to_rgba8 rounds: x * 255 rounded to float, then + 0.5, truncated. The barrier
+// keeps the compiler from fusing the two into one FMA (one rounding instead of two).
+static inline uint8_t quantize8(float x) {
+    float p = std::min(std::max(x, 0.0f), 1.0f) * 255.0f;
+    __asm__("" : "+x"(p));
+    return uint8_t(p + 0.5f);
+}
+
+constexpr int kLazyChunk = 64;  // splats gathered and spanned at a time by the lazy schedule (a multiple of W)
+
+// One 16x16 tile, in blocks of BR rows x BW columns, one vector each (BR x BW = W lanes). A block composites the
+// Gaussians that reach it, in depth order, branch-free, with its transmittance, colour and depth in registers,
+// until all its pixels have stopped; which Gaussians reach it comes from every row's exact pixel span of each
+// Gaussian's eligibility ellipse (tile_row_spans), scanned W Gaussians at a time.
+// The splats are taken in chunks: all at once (eager), or kLazyChunk at a time (lazy: a chunk is gathered and
+// spanned, for the rows that still have live blocks, only when some pixel of the tile is still compositing; the
+// tail behind a saturated tile costs nothing). Each block keeps its state between chunks, and every pixel's
+// arithmetic and order are the same whatever the chunks and the block shape: the images are bit-identical, and
+// the backward (splat_alpha) recomputes the same alpha row by row.
 // Train: also write each pixel's final transmittance and last contributor (1-based; 0: none) for the backward.
-template <bool Train>
-static void raster_tile_impl(const TileSplat* splats, int count, int tx, int ty, const Cam& cam,
-                             const float* background, float* rgb, float* alpha, float* depth, float* Tout,
-                             uint32_t* last_out) {
-    constexpr int BW = W < 8 ? W : 8;  // block columns
-    constexpr int BR = W / BW;         // block rows (1 or 2)
-    static_assert(BR == 1 || BR == 2, "blocks of one or two rows");
+template <bool Train, int BR, int BW>
+static void composite_tile(const TileSplat* sorted, const uint32_t* pos, int count, int tx, int ty, const Cam& cam,
+                           const float* background, const TileOut& o, bool lazy) {
+    static_assert(BR * BW == W, "a block is one vector");
+    constexpr int kMaxBlocks = kTile * kTile / W;
     const int xb = tx * kTile, yb = ty * kTile;
     const int xe = std::min(xb + kTile, cam.width), ye = std::min(yb + kTile, cam.height);
     const int rows = ye - yb;
+    const int bcols = (xe - xb + BW - 1) / BW, nblocks = (rows + BR - 1) / BR * bcols;
     const int cpad = (count + W - 1) / W * W;
+    const int chunk = lazy ? std::min(cpad, kLazyChunk) : cpad;
     static thread_local std::vector<float> scratch_tls;
+    static thread_local std::vector<TileSplat> gathered_tls;
     std::vector<float>& scratch = scratch_tls;
-    if (scratch.size() < size_t(cpad) * (6 + 2 * kTile)) scratch.resize(size_t(cpad) * (6 + 2 * kTile));
-    float* lo = scratch.data() + size_t(6) * cpad;
-    float* hi = lo + size_t(kTile) * cpad;
-    tile_row_spans(splats, count, cpad, yb, rows, scratch.data(), lo, hi);
+    if (scratch.size() < size_t(chunk) * (6 + 2 * kTile)) scratch.resize(size_t(chunk) * (6 + 2 * kTile));
+    if (pos != nullptr && gathered_tls.size() < size_t(chunk)) gathered_tls.resize(chunk);
+    float* lo = scratch.data() + size_t(6) * chunk;
+    float* hi = lo + size_t(kTile) * chunk;
     alignas(64) float lane_col[kMaxLanes], lane_row[kMaxLanes];
     for (int l = 0; l < W; ++l) lane_col[l] = float(l % BW), lane_row[l] = float(l / BW);
     const F col = V::load(lane_col), row = V::load(lane_row);
-    const M second_row = V::gt(row, V::set1(0.0f));  // lanes of the block's second row (BR == 2)
     const F one = V::set1(1.0f), zero = V::set1(0.0f);
     const F amax = V::set1(kAlphaMax), amin = V::set1(kAlphaMin), tstop = V::set1(kTStop);
-    for (int r0 = 0; r0 < rows; r0 += BR) {
-        const int nr = std::min(BR, rows - r0);  // rows of this block inside the tile
-        const float yc0 = float(yb + r0) + 0.5f, yc1 = yc0 + 1.0f;
-        for (int x0 = xb; x0 < xe; x0 += BW) {
+    // Per block: T, R, G, B, depth, last contributor, live (1 or 0) per lane.
+    alignas(64) float state[kMaxBlocks][7][W];
+    bool block_live[kMaxBlocks];
+    int alive = 0;
+    for (int bi = 0; bi < nblocks; ++bi) {
+        const int r0 = bi / bcols * BR, x0 = xb + bi % bcols * BW;
+        const M live = V::mand(V::lt(V::set1(float(x0) + 0.5f) + col, V::set1(float(xe))),
+                               V::lt(row, V::set1(float(rows - r0))));
+        V::store(state[bi][0], one);
+        for (int f = 1; f < 6; ++f) V::store(state[bi][f], zero);
+        V::store(state[bi][6], V::select(live, one, zero));
+        block_live[bi] = V::any(live);
+        alive += block_live[bi];
+    }
+    for (int c0 = 0; c0 < cpad && alive > 0; c0 += chunk) {
+        const int cn = std::min(chunk, cpad - c0), real = std::min(cn, count - c0);
+        const TileSplat* splats = sorted + c0;
+        if (pos != nullptr) {
+            TileSplat* g = gathered_tls.data();
+            for (int j = 0; j < real; ++j) g[j] = sorted[pos[c0 + j]];
+            splats = g;
+        }
+        bool need[kTile] = {};
+        for (int bi = 0; bi < nblocks; ++bi)
+            if (block_live[bi])
+                for (int r = bi / bcols * BR; r < std::min(bi / bcols * BR + BR, rows); ++r) need[r] = true;
+        tile_row_spans(splats, real, cn, yb, rows, need, scratch.data(), lo, hi);
+        for (int bi = 0; bi < nblocks; ++bi) {
+            if (!block_live[bi]) continue;
+            const int r0 = bi / bcols * BR, x0 = xb + bi % bcols * BW;
+            const int nr = std::min(BR, rows - r0);
             const F px = V::set1(float(x0) + 0.5f) + col;
+            const F yc = V::set1(float(yb + r0) + 0.5f) + row;  // each lane's row centre
             const F seg_lo = V::set1(float(x0)), seg_hi = V::set1(float(x0 + BW - 1));
-            F T = one, Cr = zero, Cg = zero, Cb = zero, D = zero, L = zero;
-            M live = V::mand(V::lt(px, V::set1(float(xe))), V::lt(row, V::set1(float(nr))));
-            const float* lo0 = lo + size_t(r0) * cpad;
-            const float* hi0 = hi + size_t(r0) * cpad;
-            for (int c = 0; c < cpad && V::any(live); c += W) {
+            F T = V::load(state[bi][0]), Cr = V::load(state[bi][1]), Cg = V::load(state[bi][2]);
+            F Cb = V::load(state[bi][3]), D = V::load(state[bi][4]), L = V::load(state[bi][5]);
+            M live = V::gt(V::load(state[bi][6]), zero);
+            const float* lo0 = lo + size_t(r0) * cn;
+            const float* hi0 = hi + size_t(r0) * cn;
+            for (int c = 0; c < cn && V::any(live); c += W) {
                 M reach_m = V::mand(V::le(V::load(lo0 + c), seg_hi), V::ge(V::load(hi0 + c), seg_lo));
-                if (BR == 2 && nr == 2)
-                    reach_m = V::mor(reach_m, V::mand(V::le(V::load(lo0 + cpad + c), seg_hi),
-                                                      V::ge(V::load(hi0 + cpad + c), seg_lo)));
+                for (int r = 1; r < nr; ++r)
+                    reach_m = V::mor(reach_m, V::mand(V::le(V::load(lo0 + size_t(r) * cn + c), seg_hi),
+                                                      V::ge(V::load(hi0 + size_t(r) * cn + c), seg_lo)));
                 unsigned reach = V::bits(reach_m);
                 while (reach) {
                     const int i = c + __builtin_ctz(reach);
                     const TileSplat& s = splats[i];
                     reach &= reach - 1;
                     const F dx = V::set1(s.mx) - px;
-                    // The row terms of q per lane, as splat_alpha computes them for each row.
-                    const float dy0 = s.my - yc0;
-                    F cbdy = V::set1(s.cb * dy0), hcdy2 = V::set1(s.hc * dy0 * dy0);
-                    if constexpr (BR == 2) {
-                        const float dy1 = s.my - yc1;
-                        cbdy = V::select(second_row, V::set1(s.cb * dy1), cbdy);
-                        hcdy2 = V::select(second_row, V::set1(s.hc * dy1 * dy1), hcdy2);
-                    }
+                    const F dy = V::set1(s.my) - yc;
+                    const F cbdy = V::set1(s.cb) * dy, hcdy2 = V::set1(s.hc) * dy * dy;
                     const F q = V::fma(dx, V::fma(V::set1(s.ha), dx, cbdy), hcdy2);
                     // Lanes that skip this Gaussian get alpha 0, so that T (1 - a) = T exactly and nothing is
                     // added: only the stop mask is needed to update T and the colour (fewer mask operations).
@@ -524,38 +561,59 @@ static void raster_tile_impl(const TileSplat* splats, int count, int tx, int ty,
                     Cb = V::fma(w, V::set1(s.b), Cb);
                     D = V::fma(w, V::set1(s.depth), D);
                     T = V::select(stop, T, nt);
-                    if constexpr (Train) L = V::select(V::mandnot(stop, ok), V::set1(float(i + 1)), L);
+                    if constexpr (Train) L = V::select(V::mandnot(stop, ok), V::set1(float(c0 + i + 1)), L);
                     live = V::mandnot(stop, live);
                 }
             }
-            alignas(64) float out[6][kMaxLanes];
-            V::store(out[0], T), V::store(out[1], Cr), V::store(out[2], Cg), V::store(out[3], Cb), V::store(out[4], D);
-            if constexpr (Train) V::store(out[5], L);
-            for (int l = 0; l < W; ++l) {
-                const int x = x0 + l % BW, r = l / BW;
-                if (x >= xe || r >= nr) continue;
-                const size_t p = size_t(yb + r0 + r) * cam.width + x;
-                rgb[p * 3 + 0] = out[1][l] + out[0][l] * background[0];
-                rgb[p * 3 + 1] = out[2][l] + out[0][l] * background[1];
-                rgb[p * 3 + 2] = out[3][l] + out[0][l] * background[2];
-                alpha[p] = 1.0f - out[0][l];
-                depth[p] = out[4][l];
-                if constexpr (Train) Tout[p] = out[0][l], last_out[p] = uint32_t(out[5][l]);
+            V::store(state[bi][0], T), V::store(state[bi][1], Cr), V::store(state[bi][2], Cg);
+            V::store(state[bi][3], Cb), V::store(state[bi][4], D), V::store(state[bi][5], L);
+            V::store(state[bi][6], V::select(live, one, zero));
+            if (!V::any(live)) block_live[bi] = false, --alive;
+        }
+    }
+    for (int bi = 0; bi < nblocks; ++bi) {
+        const int r0 = bi / bcols * BR, x0 = xb + bi % bcols * BW;
+        const float* st = &state[bi][0][0];
+        for (int l = 0; l < W; ++l) {
+            const int x = x0 + l % BW, r = l / BW;
+            if (x >= xe || r0 + r >= rows) continue;
+            const size_t p = size_t(yb + r0 + r) * cam.width + x;
+            const float t = st[l];
+            const float cr = st[W + l] + t * background[0];
+            const float cg = st[2 * W + l] + t * background[1];
+            const float cb = st[3 * W + l] + t * background[2];
+            if (o.rgb != nullptr) o.rgb[p * 3 + 0] = cr, o.rgb[p * 3 + 1] = cg, o.rgb[p * 3 + 2] = cb;
+            if (o.alpha != nullptr) o.alpha[p] = 1.0f - t;
+            if (o.depth != nullptr) o.depth[p] = st[4 * W + l];
+            if (o.rgba8 != nullptr) {
+                uint8_t* q8 = o.rgba8 + p * 4;
+                q8[0] = quantize8(cr), q8[1] = quantize8(cg), q8[2] = quantize8(cb), q8[3] = quantize8(1.0f - t);
             }
+            if constexpr (Train) o.T[p] = t, o.last[p] = uint32_t(st[5 * W + l]);
         }
     }
 }
 
-static void raster_tile(const TileSplat* splats, int count, int tx, int ty, const Cam& cam, const float* background,
-                        float* rgb, float* alpha, float* depth) {
-    raster_tile_impl<false>(splats, count, tx, ty, cam, background, rgb, alpha, depth, nullptr, nullptr);
+// 8 x 2 pixels with 16 lanes, 8 x 1 with 8, 1 x 1 with one; square: 4 x 4, 4 x 2, 1 x 1.
+constexpr int kWideBW = W < 8 ? W : 8;
+constexpr int kSquareBW = W >= 16 ? 4 : W >= 8 ? 4 : W;
+
+static void raster_tile(const TileSplat* sorted, const uint32_t* pos, int count, int tx, int ty, const Cam& cam,
+                        const float* background, const TileOut& out, unsigned flags) {
+    const bool lazy = (flags & kLazyTiles) != 0;
+    if (flags & kSquareBlocks)
+        composite_tile<false, W / kSquareBW, kSquareBW>(sorted, pos, count, tx, ty, cam, background, out, lazy);
+    else
+        composite_tile<false, W / kWideBW, kWideBW>(sorted, pos, count, tx, ty, cam, background, out, lazy);
 }
 
 // The training forward: the same image, plus T and the last contributor per pixel (see backward.inl).
 static void raster_tile_train(const TileSplat* splats, int count, int tx, int ty, const Cam& cam,
                               const float* background, float* rgb, float* alpha, float* depth, float* Tout,
                               uint32_t* last_out) {
-    raster_tile_impl<true>(splats, count, tx, ty, cam, background, rgb, alpha, depth, Tout, last_out);
+    TileOut o;
+    o.rgb = rgb, o.alpha = alpha, o.depth = depth, o.T = Tout, o.last = last_out;
+    composite_tile<true, W / kWideBW, kWideBW>(splats, nullptr, count, tx, ty, cam, background, o, false);
 }
 
 const Kernels& kernels() {

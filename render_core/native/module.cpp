@@ -163,25 +163,61 @@ nb::dict timings(const bs::Timings& t, const bs::Kernels& k, int threads) {
     return d;
 }
 
-nb::dict render(const NativeAvatar& avatar, In<float> psi, In<float> rot, In<float> eyelids, In<float> K,
-                In<float> R, In<float> t, int width, int height, bool antialiased, In<float> bg, Out<float> rgb,
-                Out<float> alpha, Out<float> depth, const std::string& isa, int threads) {
-    const bs::AvatarView& av = avatar.view();
+// The frame inputs of render / render_rgba8 checked; returns B.
+int check_frames(const bs::AvatarView& av, const In<float>& psi, const In<float>& rot, const In<float>& eyelids) {
     require(psi.ndim() == 2 && psi.shape(1) == size_t(av.K), "expression: expected [B, K]");
     const int B = int(psi.shape(0));
     require(B >= 1, "expression: empty batch");
     require_shape(rot, {size_t(B), size_t(av.J), 3, 3}, "joint_rotations");
     require_shape(eyelids, {size_t(B), 2}, "eyelids");
+    return B;
+}
+
+unsigned check_flags(unsigned flags) {
+    require((flags & ~unsigned(bs::kRasterDefault)) == 0, "flags: unknown compositing schedule bits");
+    return flags;
+}
+
+nb::dict render(const NativeAvatar& avatar, In<float> psi, In<float> rot, In<float> eyelids, In<float> K,
+                In<float> R, In<float> t, int width, int height, bool antialiased, In<float> bg, Out<float> rgb,
+                Out<float> alpha, Out<float> depth, const std::string& isa, int threads, unsigned flags) {
+    const bs::AvatarView& av = avatar.view();
+    const int B = check_frames(av, psi, rot, eyelids);
     auto cams = make_cams(K, R, t, B, width, height, antialiased);
     Outputs o{rgb, alpha, depth};
     check_outputs(o, bg, B, width, height);
     const bs::Kernels& k = bs::select_kernels(isa);
     const int nt = thread_count(threads);
+    bs::FrameOut out;
+    out.rgb = rgb.data(), out.alpha = alpha.data(), out.depth = depth.data();
     bs::Timings tm;
     {
         nb::gil_scoped_release release;
-        tm = bs::render_fused(av, psi.data(), rot.data(), eyelids.data(), cams.data(), B, bg.data(), rgb.data(),
-                              alpha.data(), depth.data(), k, nt);
+        tm = bs::render_fused(av, psi.data(), rot.data(), eyelids.data(), cams.data(), B, bg.data(), out, k, nt,
+                              check_flags(flags));
+    }
+    return timings(tm, k, nt);
+}
+
+// As render, straight to 8-bit RGBA [B, H, W, 4] (what to_rgba8 makes of render's rgb and alpha, bit for bit),
+// without the float images.
+nb::dict render_rgba8(const NativeAvatar& avatar, In<float> psi, In<float> rot, In<float> eyelids, In<float> K,
+                      In<float> R, In<float> t, int width, int height, bool antialiased, In<float> bg,
+                      Out<uint8_t> rgba8, const std::string& isa, int threads, unsigned flags) {
+    const bs::AvatarView& av = avatar.view();
+    const int B = check_frames(av, psi, rot, eyelids);
+    auto cams = make_cams(K, R, t, B, width, height, antialiased);
+    require_shape(bg, {size_t(B), 3}, "background");
+    require_shape(rgba8, {size_t(B), size_t(height), size_t(width), 4}, "rgba8");
+    const bs::Kernels& k = bs::select_kernels(isa);
+    const int nt = thread_count(threads);
+    bs::FrameOut out;
+    out.rgba8 = rgba8.data();
+    bs::Timings tm;
+    {
+        nb::gil_scoped_release release;
+        tm = bs::render_fused(av, psi.data(), rot.data(), eyelids.data(), cams.data(), B, bg.data(), out, k, nt,
+                              check_flags(flags));
     }
     return timings(tm, k, nt);
 }
@@ -204,7 +240,8 @@ size_t check_posed(const PosedInputs& in, size_t& N) {
 
 nb::dict rasterize(In<float> means, In<float> quats, In<float> scales, In<float> opacities, In<float> colors,
                    In<float> K, In<float> R, In<float> t, int width, int height, bool antialiased, In<float> bg,
-                   Out<float> rgb, Out<float> alpha, Out<float> depth, const std::string& isa, int threads) {
+                   Out<float> rgb, Out<float> alpha, Out<float> depth, const std::string& isa, int threads,
+                   unsigned flags) {
     size_t N = 0;
     const size_t B = check_posed({means, quats, scales, opacities, colors}, N);
     auto cams = make_cams(K, R, t, int(B), width, height, antialiased);
@@ -216,7 +253,9 @@ nb::dict rasterize(In<float> means, In<float> quats, In<float> scales, In<float>
     bs::Timings tm;
     {
         nb::gil_scoped_release release;
-        tm = bs::render_posed(pv, cams.data(), int(B), bg.data(), rgb.data(), alpha.data(), depth.data(), k, nt);
+        bs::FrameOut out;
+        out.rgb = rgb.data(), out.alpha = alpha.data(), out.depth = depth.data();
+        tm = bs::render_posed(pv, cams.data(), int(B), bg.data(), out, k, nt, check_flags(flags));
     }
     return timings(tm, k, nt);
 }
@@ -355,12 +394,18 @@ NB_MODULE(_native, m) {
                       In<float>, In<float>, In<float>, In<int32_t>, int, int, int>(),
              "base"_a, "geo_ptr"_a, "geo_col"_a, "geo_vals"_a, "sh_ptr"_a, "sh_col"_a, "sh_vals"_a, "pc"_a,
              "eyelid"_a, "lbs"_a, "joints"_a, "parents"_a, "n_face"_a, "K"_a, "C"_a);
+    const unsigned schedule = bs::kRasterDefault;
+    m.attr("LAZY_TILES") = unsigned(bs::kLazyTiles);
+    m.attr("SQUARE_BLOCKS") = unsigned(bs::kSquareBlocks);
     m.def("render", &render, "avatar"_a, "expression"_a, "joint_rotations"_a, "eyelids"_a, "K"_a, "R"_a, "t"_a,
           "width"_a, "height"_a, "antialiased"_a, "background"_a, "rgb"_a, "alpha"_a, "depth"_a, "isa"_a = "auto",
-          "threads"_a = 0);
+          "threads"_a = 0, "flags"_a = schedule);
+    m.def("render_rgba8", &render_rgba8, "avatar"_a, "expression"_a, "joint_rotations"_a, "eyelids"_a, "K"_a, "R"_a,
+          "t"_a, "width"_a, "height"_a, "antialiased"_a, "background"_a, "rgba8"_a, "isa"_a = "auto", "threads"_a = 0,
+          "flags"_a = schedule);
     m.def("rasterize", &rasterize, "means"_a, "quats"_a, "scales"_a, "opacities"_a, "colors"_a, "K"_a, "R"_a, "t"_a,
           "width"_a, "height"_a, "antialiased"_a, "background"_a, "rgb"_a, "alpha"_a, "depth"_a, "isa"_a = "auto",
-          "threads"_a = 0);
+          "threads"_a = 0, "flags"_a = schedule);
     nb::class_<TrainContext>(m, "RasterContext",
                              "What a training forward keeps for its backward (projected splats, tile lists as "
                              "Gaussian indices, per-pixel final transmittance and last contributor).")

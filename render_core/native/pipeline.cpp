@@ -160,8 +160,8 @@ const TileSplat* gather_tile(const FrameBins& fb, int tile, std::vector<TileSpla
 namespace {
 
 // Depth-sort, bin and composite B frames of projected splats ([B, n] each); returns the binning time (ms).
-double rasterize_splats(const Splat* splats, int n, int B, const Cam* cams, const float* bg, float* rgb,
-                        float* alpha, float* depth, const Kernels& k, int threads) {
+double rasterize_splats(const Splat* splats, int n, int B, const Cam* cams, const float* bg, const FrameOut& out,
+                        const Kernels& k, int threads, unsigned flags) {
     const auto t0 = Clock::now();
     static thread_local std::vector<FrameBins> bins_tls;  // the caller's; worker threads use it by reference
     std::vector<FrameBins>& bins = bins_tls;
@@ -181,9 +181,14 @@ double rasterize_splats(const Splat* splats, int n, int B, const Cam* cams, cons
         const int b = job / tiles, t = job % tiles;
         const FrameBins& fb = bins[b];
         const size_t pix = size_t(b) * W * H;
-        static thread_local std::vector<TileSplat> local;
-        k.raster_tile(gather_tile(fb, t, local), int(fb.tile_offsets[t + 1] - fb.tile_offsets[t]), t % tiles_x,
-                      t / tiles_x, cams[b], bg + 3 * b, rgb + pix * 3, alpha + pix, depth + pix);
+        TileOut o;
+        if (out.rgb != nullptr) o.rgb = out.rgb + pix * 3;
+        if (out.alpha != nullptr) o.alpha = out.alpha + pix;
+        if (out.depth != nullptr) o.depth = out.depth + pix;
+        if (out.rgba8 != nullptr) o.rgba8 = out.rgba8 + pix * 4;
+        const uint32_t o0 = fb.tile_offsets[t];
+        k.raster_tile(fb.sorted.data(), fb.binned.data() + o0, int(fb.tile_offsets[t + 1] - o0), t % tiles_x,
+                      t / tiles_x, cams[b], bg + 3 * b, o, flags);
     }
     return bin_ms;
 }
@@ -221,7 +226,7 @@ const Kernels& select_kernels(const std::string& isa) {
 }
 
 Timings render_fused(const AvatarView& av, const float* psi, const float* rot, const float* eyelids, const Cam* cams,
-                     int B, const float* bg, float* rgb, float* alpha, float* depth, const Kernels& k, int threads) {
+                     int B, const float* bg, const FrameOut& out, const Kernels& k, int threads, unsigned flags) {
     Timings tm;
     static thread_local std::vector<float> A_tls, pose_feat_tls;
     static thread_local std::vector<Splat> splats_tls;
@@ -276,13 +281,13 @@ Timings render_fused(const AvatarView& av, const float* psi, const float* rot, c
     tm.lbs_ms = fused_ms - tm.blend_ms;
 
     const auto t1 = Clock::now();
-    tm.bin_ms = rasterize_splats(splats.data(), av.n_total, B, cams, bg, rgb, alpha, depth, k, threads);
+    tm.bin_ms = rasterize_splats(splats.data(), av.n_total, B, cams, bg, out, k, threads, flags);
     tm.raster_ms = ms_since(t1);
     return tm;
 }
 
-Timings render_posed(const PosedView& pv, const Cam* cams, int B, const float* bg, float* rgb, float* alpha,
-                     float* depth, const Kernels& k, int threads) {
+Timings render_posed(const PosedView& pv, const Cam* cams, int B, const float* bg, const FrameOut& out,
+                     const Kernels& k, int threads, unsigned flags) {
     Timings tm;
     static thread_local std::vector<Splat> splats_tls;
     std::vector<Splat>& splats = splats_tls;
@@ -297,7 +302,7 @@ Timings render_posed(const PosedView& pv, const Cam* cams, int B, const float* b
     }
     tm.lbs_ms = ms_since(t0);
     t0 = Clock::now();
-    tm.bin_ms = rasterize_splats(splats.data(), pv.N, B, cams, bg, rgb, alpha, depth, k, threads);
+    tm.bin_ms = rasterize_splats(splats.data(), pv.N, B, cams, bg, out, k, threads, flags);
     tm.raster_ms = ms_since(t0);
     return tm;
 }

@@ -46,13 +46,22 @@ std::vector<std::string> available_isas();
 // "auto" picks the fastest; an unavailable name throws std::invalid_argument listing the available ones.
 const Kernels& select_kernels(const std::string& isa);
 
-// B frames of one avatar: psi [B, K], rot [B, J, 3, 3], eyelids [B, 2], cams [B], bg [B, 3];
-// outputs rgb [B, H, W, 3], alpha [B, H, W], depth [B, H, W].
+// The outputs of B frames: rgb [B, H, W, 3], alpha and depth [B, H, W], 8-bit RGBA [B, H, W, 4]; any may be null.
+struct FrameOut {
+    float* rgb = nullptr;
+    float* alpha = nullptr;
+    float* depth = nullptr;
+    uint8_t* rgba8 = nullptr;
+};
+
+// B frames of one avatar: psi [B, K], rot [B, J, 3, 3], eyelids [B, 2], cams [B], bg [B, 3]; the compositing
+// schedule of flags (RasterFlags).
 Timings render_fused(const AvatarView& av, const float* psi, const float* rot, const float* eyelids, const Cam* cams,
-                     int B, const float* bg, float* rgb, float* alpha, float* depth, const Kernels& k, int threads);
+                     int B, const float* bg, const FrameOut& out, const Kernels& k, int threads,
+                     unsigned flags = kRasterDefault);
 
 // B frames of already posed Gaussians (colours evaluated).
-Timings render_posed(const PosedView& pv, const Cam* cams, int B, const float* bg, float* rgb, float* alpha,
-                     float* depth, const Kernels& k, int threads);
+Timings render_posed(const PosedView& pv, const Cam* cams, int B, const float* bg, const FrameOut& out,
+                     const Kernels& k, int threads, unsigned flags = kRasterDefault);
 
 }  // namespace bs

@@ -43,6 +43,35 @@ PRECISIONS = ("fp32", "fp16")
 log = logging.getLogger(__name__)
 
 
+@dataclass(frozen=True)
+class Schedule:
+    """How the native renderer schedules its work: each switch changes the cost, never a pixel (the images are
+    bit-identical either way; tests compare them), so each can be turned off to measure what it buys.
+
+    - ``lazy_tiles``: a tile's splats are gathered and their row spans computed a chunk at a time, and the tile
+      stops once every pixel has stopped (the splats behind a saturated tile cost nothing);
+    - ``square_blocks``: pixels composited in 4 x 4 blocks (one 16-lane vector; 4 x 2 with 8 lanes) instead of
+      8 x 2 (8 x 1), which wastes fewer lanes on splats a few pixels wide;
+    - ``direct_rgba8``: :meth:`NativeAvatar.render_rgba8` writes 8-bit RGBA from the compositing loop instead of
+      float images converted afterwards.
+    """
+
+    lazy_tiles: bool = True
+    square_blocks: bool = True
+    direct_rgba8: bool = True
+
+    @classmethod
+    def baseline(cls) -> Schedule:
+        """Every switch off: the schedule before them."""
+        return cls(lazy_tiles=False, square_blocks=False, direct_rgba8=False)
+
+    @property
+    def flags(self) -> int:
+        """The compositing flags of the C++ kernels."""
+        _require()
+        return (_native.LAZY_TILES if self.lazy_tiles else 0) | (_native.SQUARE_BLOCKS if self.square_blocks else 0)
+
+
 def available() -> bool:
     return _native is not None
 
@@ -142,16 +171,17 @@ def _check_posed(splats: ShadedSplats, cameras: Cameras, background: Tensor | No
 
 
 def rasterize(splats: ShadedSplats, cameras: Cameras, background: Tensor | None = None, mode: str = "classic", *,
-              simd: str | None = None, threads: int = 0) -> RasterOutput:
+              simd: str | None = None, threads: int = 0, schedule: Schedule | None = None) -> RasterOutput:
     """Splat ``splats`` for ``cameras`` as every backend does (:mod:`render_core.raster.splats`), in float32 with
-    the stage timings; no autograd. ``simd``: the SIMD path (:func:`simd_choice`); ``threads`` 0: all."""
+    the stage timings; no autograd. ``simd``: the SIMD path (:func:`simd_choice`); ``threads`` 0: all;
+    ``schedule``: :class:`Schedule` (default: every switch on)."""
     _check_posed(splats, cameras, background, mode)
     b = splats.means.shape[0]
     rgb, alpha, depth = _outputs(b, cameras.height, cameras.width)
     K, R, t = _camera_arrays(cameras)
     timings = _native.rasterize(*map(_np, splats.tensors().values()), K, R, t, cameras.width, cameras.height,
                                 mode == "antialiased", _background(background, b), rgb, alpha, depth,
-                                simd_choice(simd), threads)
+                                simd_choice(simd), threads, (schedule or Schedule()).flags)
     return RasterOutput(torch.from_numpy(rgb), torch.from_numpy(alpha), torch.from_numpy(depth),
                         timings=dict(timings))
 
@@ -307,8 +337,35 @@ class NativeAvatar:
         *,
         simd: str | None = None,
         threads: int = 0,
+        schedule: Schedule | None = None,
     ) -> tuple[Tensor, Tensor, Tensor, dict]:
-        """Fused blend + skinning + splatting of B frames; rgb, alpha, depth and per-stage timings (ms)."""
+        """Fused blend + skinning + splatting of B frames; rgb, alpha, depth and per-stage timings (ms).
+        ``schedule``: :class:`Schedule` (default: every switch on)."""
+        args = self._inputs(expression, joint_rotations, eyelids, cameras, background)
+        rgb, alpha, depth = _outputs(expression.shape[0], cameras.height, cameras.width)
+        timings = _native.render(self.handle, *args, rgb, alpha, depth, simd_choice(simd), threads,
+                                 (schedule or Schedule()).flags)
+        return torch.from_numpy(rgb), torch.from_numpy(alpha), torch.from_numpy(depth), dict(timings)
+
+    def render_rgba8(self, expression: Tensor, joint_rotations: Tensor, eyelids: Tensor | None, cameras: Cameras,
+                     background: Tensor | None = None, *, simd: str | None = None, threads: int = 0,
+                     schedule: Schedule | None = None) -> tuple[np.ndarray, dict]:
+        """As :meth:`render`, as 8-bit RGBA [B, H, W, 4] (colour over the background, then alpha; what
+        :func:`to_rgba8` makes of :meth:`render`'s rgb and alpha, bit for bit) and the timings; with
+        ``schedule.direct_rgba8`` written by the compositing loop, without float images."""
+        schedule = schedule or Schedule()
+        if not schedule.direct_rgba8:
+            rgb, alpha, _, timings = self.render(expression, joint_rotations, eyelids, cameras, background,
+                                                 simd=simd, threads=threads, schedule=schedule)
+            return to_rgba8(rgb, alpha, threads), timings
+        args = self._inputs(expression, joint_rotations, eyelids, cameras, background)
+        out = np.empty((expression.shape[0], cameras.height, cameras.width, 4), np.uint8)
+        timings = _native.render_rgba8(self.handle, *args, out, simd_choice(simd), threads, schedule.flags)
+        return out, dict(timings)
+
+    def _inputs(self, expression: Tensor, joint_rotations: Tensor, eyelids: Tensor | None, cameras: Cameras,
+                background: Tensor | None) -> tuple:
+        """The checked arguments of the native entry points, up to the background."""
         b = expression.shape[0]
         if len(cameras) != b:
             raise ShapeError(f"{b} frames need {b} cameras, got {len(cameras)}", field="cameras")
@@ -316,12 +373,9 @@ class NativeAvatar:
             eyelids = torch.zeros(b, 2)
         _check_finite(expression=expression, joint_rotations=joint_rotations, eyelids=eyelids, background=background)
         _check_cameras(cameras)
-        rgb, alpha, depth = _outputs(b, cameras.height, cameras.width)
         K, R, t = _camera_arrays(cameras)
-        timings = _native.render(self.handle, _np(expression), _np(joint_rotations), _np(eyelids), K, R, t,
-                                 cameras.width, cameras.height, self.avatar.raster_mode == "antialiased",
-                                 _background(background, b), rgb, alpha, depth, simd_choice(simd), threads)
-        return torch.from_numpy(rgb), torch.from_numpy(alpha), torch.from_numpy(depth), dict(timings)
+        return (_np(expression), _np(joint_rotations), _np(eyelids), K, R, t, cameras.width, cameras.height,
+                self.avatar.raster_mode == "antialiased", _background(background, b))
 
 
 def _avatar_tensors(avatar: Avatar) -> list[Tensor]:

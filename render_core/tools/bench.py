@@ -20,6 +20,7 @@ import os
 import platform
 import statistics
 import time
+from dataclasses import asdict
 
 import numpy as np
 import torch
@@ -126,6 +127,38 @@ def profile_frames(renderer: AvatarRenderer, cams: Cameras, g: torch.Generator, 
                      "cpu_ms_per_frame": round(e.self_cpu_time_total / per_frame, 4)} for e in rows]}
 
 
+SCHEDULES = ("on", "off", "compare")
+
+
+def compare_schedules(renderer: AvatarRenderer, cams: Cameras, frames: int, warmup: int,
+                      g: torch.Generator) -> dict:
+    """The native renderer's schedule against :meth:`Schedule.baseline` (every switch off), side by side in one
+    process: each frame rendered to 8-bit RGBA (what a stream encodes) by both, in alternating order; each one's
+    stage medians, the speed-up of the totals and whether every image was identical."""
+    runs = {"baseline": native.Schedule.baseline(), "schedule": renderer.schedule}
+    stages: dict[str, dict[str, list[float]]] = {name: {} for name in runs}
+    identical = True
+    for i in range(warmup + frames):
+        frame = random_frames(renderer.avatar, len(cams), g)
+        images = {}
+        for name in (list(runs) if i % 2 == 0 else list(runs)[::-1]):
+            t0 = time.perf_counter()
+            images[name], timings = renderer.render_rgba8(frame, cams, schedule=runs[name])
+            total = (time.perf_counter() - t0) * 1e3
+            if i >= warmup:
+                for key in ("blend", "lbs", "raster", "bin"):
+                    stages[name].setdefault(key, []).append(float(timings[key]))
+                stages[name].setdefault("total", []).append(total)
+        identical = identical and bool(np.array_equal(images["baseline"], images["schedule"]))
+    ms = {name: {k: round(statistics.median(v), 3) for k, v in rows.items()} for name, rows in stages.items()}
+    return {"baseline": {**asdict(runs["baseline"]), "ms": ms["baseline"],
+                         "fps": round(1000.0 / ms["baseline"]["total"] * len(cams), 2)},
+            "schedule": {**asdict(runs["schedule"]), "ms": ms["schedule"],
+                         "fps": round(1000.0 / ms["schedule"]["total"] * len(cams), 2)},
+            "speedup": round(ms["baseline"]["total"] / ms["schedule"]["total"], 3), "identical": identical,
+            "frames": frames}
+
+
 def _check_counts(minimum: int, **counts: int) -> None:
     """OptionError naming the first count below ``minimum``."""
     for name, value in counts.items():
@@ -150,6 +183,7 @@ def bench_render(
     trace: str | None = None,
     layout: str = "dense",
     fuse: str = "graph",
+    schedule: str = "on",
 ) -> dict:
     """Time ``frames`` frames (after ``warmup``) of ``streams`` batched streams; returns the JSON report.
 
@@ -161,7 +195,13 @@ def bench_render(
     takes tens of seconds.
 
     ``precision`` is the blendshape storage: the synthetic avatar's ("fp32" or "fp16"), and for the cuda backend
-    the storage on the GPU ("bf16" too, from an fp16 avatar)."""
+    the storage on the GPU ("bf16" too, from an fp16 avatar).
+
+    ``schedule`` (native): ``"on"`` (every :class:`~render_core.raster.native.Schedule` switch), ``"off"`` (the
+    baseline), or ``"compare"``: the timed frames with the schedule on, then the same frames rendered to RGBA8 by
+    both schedules side by side (``vs_baseline``: :func:`compare_schedules`)."""
+    if schedule not in SCHEDULES:
+        raise OptionError(f"must be one of {', '.join(SCHEDULES)}, got {schedule!r}", field="schedule")
     _check_counts(1, size=size, streams=streams, frames=frames)
     _check_counts(0, warmup=warmup, reference_frames=reference_frames, threads=threads)
     backend = check_backend(backend)  # before building the avatar: an unavailable backend fails at once
@@ -175,7 +215,8 @@ def bench_render(
     log.info("preparing the %s renderer and framing the camera", backend)
     # bf16 is a storage on the GPU only (from the fp16 avatar); otherwise every backend stores the avatar's own.
     renderer = AvatarRenderer(avatar, backend, threads=threads, precision="bf16" if precision == "bf16" else None,
-                              layout=layout, fuse=fuse)
+                              layout=layout, fuse=fuse,
+                              schedule=native.Schedule.baseline() if schedule == "off" else None)
     cams = framed_camera(avatar, size).expand(streams)
     g = torch.Generator().manual_seed(seed + 1)
     log.info("timing %d frame(s) of %d stream(s) at %d px (after %d warm-up)", frames, streams, size, warmup)
@@ -210,6 +251,10 @@ def bench_render(
         probe = max((native.bandwidth_probe(stats.blend_bytes, threads) for _ in range(3)), key=lambda p: p["gbps"])
         bound_ms = stats.blend_bytes / (probe["gbps"] * 1e9) * 1e3
         report["simd"] = timed["last_timings"].get("isa")
+        report["schedule"] = asdict(renderer.schedule)
+        if schedule == "compare":
+            log.info("the same frames with the baseline schedule and this one, side by side")
+            report["vs_baseline"] = compare_schedules(renderer, cams, frames, warmup, g)
         report["blend"] = {
             "bytes": stats.blend_bytes,
             "stored_pairs": stats.pairs_stored,

@@ -168,7 +168,7 @@ def cmd_bench_render(args: argparse.Namespace) -> int:
                           sh_degree=args.sh_degree, precision=args.precision, seed=args.seed, avatar=avatar,
                           reference_frames=args.reference_frames, threads=args.threads,
                           trace=None if args.trace is None else str(args.trace), layout=args.layout,
-                          fuse=args.fuse)
+                          fuse=args.fuse, schedule=args.schedule)
     if args.json:
         _emit(report)
     else:
@@ -841,6 +841,10 @@ def _add_bench_commands(sub: argparse._SubParsersAction) -> argparse._SubParsers
                    help="cuda: blend + skinning + shading as one CUDA graph (compile: over torch.compile's kernels)")
     b.add_argument("--trace", type=Path, default=None,
                    help="also profile 20 frames with torch.profiler: Chrome trace here, top operators in the report")
+    b.add_argument("--schedule", choices=("on", "off", "compare"), default="on",
+                   help="native: the compositing schedule's switches (lazy tiles, square blocks, direct RGBA8) on, "
+                        "off, or both side by side on the same frames (vs_baseline, with identical: true when "
+                        "every image matched)")
     b.add_argument("--json", action="store_true")
     b.set_defaults(fn=cmd_bench_render)
     b = bsub.add_parser("raster-backward", help="forward + backward of the differentiable rasterizer (training's "

@@ -1,0 +1,109 @@
+"""The native renderer's schedule switches (render_core.raster.native.Schedule: lazy tiles, square blocks, direct
+RGBA8) change its cost, never a pixel: every combination gives bit-identical images on every SIMD path, the RGBA8
+output is to_rgba8 of the float images bit for bit, and the benchmark's side-by-side comparison says so."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+import torch
+
+from render_core.camera import orbit
+from render_core.raster import ShadedSplats, native
+from render_core.renderer import AvatarRenderer
+from render_core.tools.bench import bench_render, framed_camera, random_frames
+from render_core.tools.synth import synth_avatar
+
+pytestmark = pytest.mark.skipif(not native.available(), reason="the native extension is not built")
+
+SIMD = native.simd_paths() if native.available() else []
+SCHEDULES = [native.Schedule(lazy, square, direct) for lazy, square, direct in itertools.product((False, True),
+                                                                                                  repeat=3)]
+SIZES = [(96, 96), (61, 37)]  # whole tiles, and partial tiles in both directions
+
+
+@pytest.fixture(scope="module")
+def dense_head():
+    """A head dense enough that its tiles hold several lazy chunks (> 64 splats) and saturate."""
+    return synth_avatar(gaussians=6000, blendshapes=8, seed=7)
+
+
+def _cams(avatar, w: int, h: int):
+    focal = float(framed_camera(avatar, 64).K[0, 0, 0]) * max(w, h) / 64
+    return orbit([0.0, 25.0, -15.0], width=w, height=h, focal=focal)
+
+
+@pytest.mark.parametrize("simd", SIMD)
+@pytest.mark.parametrize("size", SIZES, ids=[f"{w}x{h}" for w, h in SIZES])
+def test_every_schedule_renders_the_same_bits(dense_head, simd, size):
+    cams = _cams(dense_head, *size)
+    frame = random_frames(dense_head, 3, torch.Generator().manual_seed(3))
+    bg = torch.tensor([[0.2, 0.4, 0.6], [1.0, 1.0, 1.0], [0.0, 0.0, 0.0]])
+    r = AvatarRenderer(dense_head, "native", simd=simd)
+    base = r.render(frame, cams, bg, schedule=native.Schedule.baseline())
+    assert float((base.alpha > 0.999).float().mean()) > 0.1  # saturated pixels: lazy tiles stop early somewhere
+    want8 = native.to_rgba8(base.rgb, base.alpha)
+    for schedule in SCHEDULES:
+        out = r.render(frame, cams, bg, schedule=schedule)
+        for name in ("rgb", "alpha", "depth"):
+            assert torch.equal(getattr(out, name), getattr(base, name)), (schedule, name)
+        rgba8, timings = r.render_rgba8(frame, cams, bg, schedule=schedule)
+        assert rgba8.dtype == np.uint8 and rgba8.shape == (3, size[1], size[0], 4)
+        assert np.array_equal(rgba8, want8), schedule
+        assert timings["isa"] == simd and timings["raster"] > 0
+
+
+@pytest.mark.parametrize("simd", SIMD)
+def test_posed_rasterization_is_the_same_under_every_schedule(dense_head, simd):
+    from render_core.deform import deform
+
+    cams = _cams(dense_head, 80, 48)
+    frame = random_frames(dense_head, 3, torch.Generator().manual_seed(5))
+    splats = ShadedSplats.from_splats(deform(dense_head.with_precision("fp32"), frame), cams)
+    base = native.rasterize(splats, cams, schedule=native.Schedule.baseline(), simd=simd)
+    for schedule in SCHEDULES:
+        out = native.rasterize(splats, cams, schedule=schedule, simd=simd)
+        assert torch.equal(out.rgb, base.rgb) and torch.equal(out.alpha, base.alpha), schedule
+        assert torch.equal(out.depth, base.depth), schedule
+
+
+def test_the_renderer_default_schedule_is_every_switch_and_can_be_turned_off(dense_head):
+    assert AvatarRenderer(dense_head, "native").schedule == native.Schedule(True, True, True)
+    off = AvatarRenderer(dense_head, "native", schedule=native.Schedule.baseline()).schedule
+    assert off == native.Schedule(False, False, False)
+
+
+def test_rgba8_of_the_reference_backend_is_to_rgba8_of_its_render(dense_head):
+    r = AvatarRenderer(dense_head, "reference")
+    cams = _cams(dense_head, 24, 24)
+    frame = random_frames(dense_head, 3, torch.Generator().manual_seed(1))
+    rgba8, _ = r.render_rgba8(frame, cams)
+    out = r.render(frame, cams)
+    assert np.array_equal(rgba8, native.to_rgba8(out.rgb, out.alpha))
+
+
+def test_unknown_schedule_bits_are_refused(dense_head):
+    from render_core import _native
+
+    packed = native.NativeAvatar(dense_head)
+    cams = _cams(dense_head, 16, 16).index(slice(0, 1))
+    frame = random_frames(dense_head, 1, torch.Generator().manual_seed(1))
+    args = packed._inputs(frame.expression, frame.joint_rotations, frame.eyelids, cams, None)
+    rgb, alpha, depth = (np.zeros(s, np.float32) for s in ((1, 16, 16, 3), (1, 16, 16), (1, 16, 16)))
+    with pytest.raises(ValueError, match="flags"):
+        _native.render(packed.handle, *args, rgb, alpha, depth, "auto", 0, 64)
+
+
+def test_bench_render_compares_the_schedules_side_by_side(dense_head):
+    report = bench_render("native", avatar=dense_head, size=64, streams=2, frames=2, warmup=1, schedule="compare")
+    cmp = report["vs_baseline"]
+    assert cmp["identical"] is True and cmp["frames"] == 2 and cmp["speedup"] > 0
+    assert cmp["baseline"]["lazy_tiles"] is False and cmp["schedule"]["lazy_tiles"] is True
+    assert {"blend", "lbs", "raster", "bin", "total"} == set(cmp["schedule"]["ms"])
+    assert report["schedule"] == {"lazy_tiles": True, "square_blocks": True, "direct_rgba8": True}
+    off = bench_render("native", avatar=dense_head, size=32, frames=1, warmup=0, schedule="off")
+    assert off["schedule"]["square_blocks"] is False and "vs_baseline" not in off
+    with pytest.raises(Exception, match="schedule"):
+        bench_render("native", avatar=dense_head, size=32, frames=1, schedule="fast")
