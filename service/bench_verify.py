@@ -4,7 +4,8 @@ While the streams run, each keeps a few of its counted frames (:class:`Keeper`: 
 for it and the encoded bytes received, evenly spread over the run, at most twice what it needs). After the timed
 run, N of them (spread over the streams and over time) are rendered again, one at a time, by the server's Render
 RPC: a single frame outside any stream, so nothing a stream carries from frame to frame (a previous frame's
-depth order, tile lists) is used, with every CPU-cost mechanism off, as PNG (lossless). The figure is the PSNR of
+depth order, tile lists) is used, with every CPU-cost mechanism off (``RenderRequest.reference``: the native
+renderer's baseline schedule), as PNG (lossless). The figure is the PSNR of
 each streamed frame against that cold render, **compared in the stream's codec**: for JPEG, the cold render is
 encoded with the same encoder and quality the server uses (libjpeg-turbo through simplejpeg, quality 90, 4:2:0,
 fast DCT) and both are decoded. A frame whose pixels are the cold render's then compares as identical
@@ -95,7 +96,8 @@ def _compare(codec: str, streamed: bytes, cold_rgba: np.ndarray, size: int) -> t
 
 async def verify(stub: pb_grpc.RenderServiceStub, avatar: str, size: int, codec: str, samples: list[Sample],
                  metadata) -> dict:
-    """Render ``samples`` again cold (Render RPC, PNG) and compare (module docstring): the ``verify`` report."""
+    """Render ``samples`` again cold (Render RPC, PNG, ``reference``: every speed mechanism off) and compare
+    (module docstring): the ``verify`` report."""
     from render_core.media.codecs import decode_image
 
     figures, lossless, errors = [], [], []
@@ -104,7 +106,7 @@ async def verify(stub: pb_grpc.RenderServiceStub, avatar: str, size: int, codec:
         pose.CopyFrom(s.pose)
         try:
             reply = await stub.Render(pb.RenderRequest(avatar_id=avatar, width=size, height=size, codec=pb.CODEC_PNG,
-                                                       frame=pose), metadata=metadata)
+                                                       frame=pose, reference=True), metadata=metadata)
         except grpc.aio.AioRpcError as e:
             errors.append(f"{e.code().name}: {e.details()}")
             continue

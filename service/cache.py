@@ -30,6 +30,7 @@ from pathlib import Path
 from render_core.avatar import Avatar
 from render_core.bundle import BundleMappingError, read_bundle_and_manifest
 from render_core.errors import BundleError
+from render_core.raster.native import Schedule
 from render_core.renderer import AvatarRenderer
 
 from .errors import FailedPrecondition, NotFound, ResourceExhausted
@@ -54,9 +55,9 @@ class Loaded:
 
 class AvatarCache:
     def __init__(self, store: BundleStore, budget: int, metrics: Metrics, backend: str | None = None,
-                 threads: int = 0):
+                 threads: int = 0, schedule: Schedule | None = None):
         self.store, self.budget, self.metrics = store, budget, metrics
-        self.backend, self.threads = backend, threads
+        self.backend, self.threads, self.schedule = backend, threads, schedule
         self._entries: OrderedDict[str, Loaded] = OrderedDict()  # least recently used first
         self._loading: dict[str, asyncio.Future[Loaded]] = {}
         self._reserved: dict[str, int] = {}  # loads in progress: the bytes admitted for them before reading
@@ -126,7 +127,8 @@ class AvatarCache:
         return entry is not None
 
     def _read(self, avatar_id: str, path: Path) -> Loaded:
-        return read_entry(avatar_id, path, self.backend, self.threads, verify=not self.store.verified(path))
+        return read_entry(avatar_id, path, self.backend, self.threads, verify=not self.store.verified(path),
+                          schedule=self.schedule)
 
     def _make_room(self, need: int, for_id: str, *, before_reading: bool = False) -> None:
         """Evict unpinned avatars, least recently used first, until ``need`` more bytes fit beside the loaded
@@ -170,10 +172,11 @@ def _file_id(path: Path) -> tuple[int, int, int]:
 
 
 def read_entry(avatar_id: str, path: Path, backend: str | None = None, threads: int = 0, *, verify: bool = True,
-               seconds: dict[str, float] | None = None) -> Loaded:
+               seconds: dict[str, float] | None = None, schedule: Schedule | None = None) -> Loaded:
     """Read a bundle of the store and pack it for ``backend``: what a cache miss costs (``blendsplat bench load``
     times it). ``verify``: the digest and finiteness pass (skipped for a bundle the store recorded as verified;
-    the layout, manifest and shapes are always checked). ``seconds`` gets the stages ``read`` and ``renderer``."""
+    the layout, manifest and shapes are always checked). ``seconds`` gets the stages ``read`` and ``renderer``.
+    ``schedule``: the native renderer's (default: every switch on)."""
     file_id = _file_id(path)  # before reading: a file replaced during the read is noticed at the next load
     t0 = time.perf_counter()
     try:
@@ -184,7 +187,7 @@ def read_entry(avatar_id: str, path: Path, backend: str | None = None, threads: 
         raise FailedPrecondition(f"avatar {avatar_id!r} has a broken bundle in the store: {e}",
                                  field="avatar_id") from None
     t1 = time.perf_counter()
-    renderer = AvatarRenderer(avatar, backend, threads=threads)
+    renderer = AvatarRenderer(avatar, backend, threads=threads, schedule=schedule)
     if seconds is not None:
         seconds.update(read=t1 - t0, renderer=time.perf_counter() - t1)
     file_bytes = path.stat().st_size

@@ -10,6 +10,11 @@
   has answered (a frame, or an error for it); others are refused (``ack.index``) and acknowledge nothing.
 - One scheduler task hands ready sessions to a single render thread (the native renderer uses every core for one
   call); sessions of the same avatar and output size that are ready together are rendered as one batched call.
+- Encoding is off the render thread's path (``encode_threads`` > 0): after a batched render, each frame goes to its
+  session's encode lane (:mod:`service.encoding`) and the render thread goes on with the next batch; the frames of
+  a batch encode in parallel, a session's one at a time and in order, and are delivered in order (an error keeps
+  its place among them); closing a session closes its encoder after its frames in flight. ``encode_threads=0``
+  encodes a batch's frames on the render thread after its render. Render time, not encode time, is charged.
 - Every frame is validated (:mod:`service.params`) before it joins a batch. Per-frame work is bounded: a frame
   whose estimated (Gaussian, pixel) pairs pass ``max_frame_splat_pixels`` is refused, and a batch holds at most
   that much estimated work, so the render thread is never held by one call for much longer than one budget's
@@ -41,6 +46,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import logging
 import math
 import os
@@ -60,12 +66,13 @@ from render_core.camera import Cameras
 from render_core.deform import Frame
 from render_core.errors import BlendsplatError, CodecError
 from render_core.media.codecs import Encoder, make_encoder
-from render_core.media.pixels import to_rgba8
+from render_core.raster.native import Schedule
 
 from . import params
 from .access.auth import TRUSTED, Access, Principal
 from .access.limits import Release, no_release
 from .cache import AvatarCache, Loaded
+from .encoding import EncodeLanes
 from .errors import InvalidArgument, NotFound, ResourceExhausted, ServiceError, Unavailable, hide_paths, to_status
 from .intake import Spooled, UploadIntake
 from .metrics import STAGES, Metrics
@@ -91,6 +98,7 @@ class Job:
     received: float = field(default_factory=time.perf_counter)
     started: float = 0.0
     drive: object | None = None  # a frame waiting for its adapter (service/adapters.py): frame is None until mapped
+    reference: bool = False  # render with every speed mechanism off (RenderRequest.reference; never batched)
 
     @classmethod
     def build(cls, avatar: Avatar, msg: pb.FrameParams, order: list[str], out: params.Output, budget: float,
@@ -352,7 +360,10 @@ class Engine:
         # Render threads: the setting, else every CPU this process may use (not OpenMP's current default, which
         # torch.set_num_threads anywhere in the process would change for the native renderer too).
         threads = settings.render_threads or len(os.sched_getaffinity(0))
-        self.cache = AvatarCache(self.store, settings.cache_bytes, self.metrics, settings.backend, threads)
+        self.cache = AvatarCache(self.store, settings.cache_bytes, self.metrics, settings.backend, threads,
+                                 Schedule(lazy_tiles=settings.raster_lazy_tiles,
+                                          square_blocks=settings.raster_square_blocks,
+                                          direct_rgba8=settings.raster_direct_rgba8))
         self.access = access or Access.trusted(settings)
         self.intake = UploadIntake(self.access)
         self.sessions: dict[str, Session] = {}
@@ -362,6 +373,8 @@ class Engine:
         self.frames_closed = False  # open streams take no new frames either
         self.warmed_up = False
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="render")
+        # encoding off the render thread (0: each batch's frames are encoded on it, after the render)
+        self._lanes = EncodeLanes(settings.encode_threads) if settings.encode_threads else None
         self._wake = asyncio.Event()
         self._busy = False
         self._vclock = 0.0  # the render time charged to the session served last (fair share's "now")
@@ -450,6 +463,8 @@ class Engine:
         if self._guard is not None:
             self._guard.cancel()
         self._pool.shutdown(wait=True, cancel_futures=True)
+        if self._lanes is not None:
+            self._lanes.shutdown()  # the encodes the renders handed over, and the encoders' closes
 
     # --------------------------------------------------------------------------------------------- sessions
     async def open(self, config: pb.SessionConfig, transport: str, principal: Principal = TRUSTED) -> Session:
@@ -490,7 +505,7 @@ class Engine:
         self.cache.release(session.entry)
         session.release_slot()
         self.metrics.sessions.labels(session.transport).dec()
-        self._pool.submit(session.encoder.close)  # after any encode of it still running
+        self._pool.submit(self._close_encoder, session.encoder)  # after any render and encode of it still running
 
     def close_session(self, session: Session) -> None:
         """The client went away: drop what is pending and free the session."""
@@ -513,6 +528,7 @@ class Engine:
                 job = Job.build(avatar, request.frame, params.expression_order(avatar,
                                                                                list(request.expression_names)),
                                 out, self.settings.max_frame_splat_pixels)
+                job.reference = request.reference
                 encoder = make_encoder(out.codec, out.width, out.height, request.quality)
                 result = await self._render_single(entry, job, out, encoder, principal.key_id)
             finally:
@@ -550,9 +566,17 @@ class Engine:
             for idle in [k for k, a in self._accounts.items() if not a.in_flight and a.vtime <= self._vclock]:
                 del self._accounts[idle]
             try:
-                self._pool.submit(encoder.close)
+                self._pool.submit(self._close_encoder, encoder)
             except RuntimeError:  # the pool is shut down: nothing renders any more
                 encoder.close()
+
+    def _close_encoder(self, encoder: Encoder) -> None:
+        """Close an encoder (on the render thread, after every render of its session): at once, or in its encode
+        lane, after the frames of it still encoding."""
+        if self._lanes is None:
+            encoder.close()
+        else:
+            self._lanes.close(encoder)
 
     # -------------------------------------------------------------------------------------------- scheduling
     def wake(self) -> None:
@@ -577,7 +601,8 @@ class Engine:
             if len(batch) >= self.settings.max_batch:
                 break
             if (s.entry is first.entry and (s.out.width, s.out.height) == (first.out.width, first.out.height)
-                    and work + s.pending.cost <= budget and id(_payer(s)) not in payers):
+                    and work + s.pending.cost <= budget and id(_payer(s)) not in payers
+                    and not (first.pending.reference or s.pending.reference)):
                 batch.append(s)
                 work += s.pending.cost
                 payers.add(id(_payer(s)))
@@ -590,26 +615,43 @@ class Engine:
             self._wake.clear()
             while batch := self._next_batch():
                 jobs = [s.take() for s in batch]
-                try:
-                    results, seconds = await loop.run_in_executor(self._pool, _render_isolated, batch[0].entry, jobs,
-                                                                  [s.encoder for s in batch])
-                except Exception as e:  # noqa: BLE001 - cannot happen (_render_isolated returns errors); defensive
-                    results, seconds = [_attributed(e)] * len(jobs), 0.0
-                self._observe(jobs, results, batch[0].out.codec)
-                total = sum(j.cost for j in jobs)
-                for session, job, result in zip(batch, jobs, results, strict=True):
-                    session.vtime += seconds * (job.cost / total if total > 0 else 1 / len(jobs))
-                    session.deliver(job, result)
+                entry, encoders = batch[0].entry, [s.encoder for s in batch]
+                if self._lanes is not None:  # the render thread hands the frames to the encoders and goes on
+                    done = [functools.partial(self._post, loop, s, j) for s, j in zip(batch, jobs, strict=True)]
+                    rendered, seconds = await loop.run_in_executor(self._pool, _render_pipelined, entry, jobs,
+                                                                   encoders, self._lanes, done)
+                else:
+                    try:
+                        results, seconds = await loop.run_in_executor(self._pool, _render_isolated, entry, jobs,
+                                                                      encoders)
+                    except Exception as e:  # noqa: BLE001 - cannot happen (_render_isolated returns errors)
+                        results, seconds = [_attributed(e)] * len(jobs), 0.0
+                    rendered = any(isinstance(r, Rendered) for r in results)
+                    for session, job, result in zip(batch, jobs, results, strict=True):
+                        self._delivered(session, job, result)
+                if rendered:
+                    self.metrics.batch.observe(len(jobs))
+                self._charge(batch, jobs, seconds)
 
-    def _observe(self, jobs: list[Job], results: list, codec: str) -> None:
-        m = self.metrics
-        ok = [r for r in results if isinstance(r, Rendered)]
-        if ok:
-            m.batch.observe(len(jobs))
-        for r in ok:
-            t = r.timings
+    def _charge(self, batch: list[Session | OneShot], jobs: list[Job], seconds: float) -> None:
+        """Each entry of a batch is charged its share of the render's ``seconds`` (by estimated cost)."""
+        total = sum(j.cost for j in jobs)
+        for session, job in zip(batch, jobs, strict=True):
+            session.vtime += seconds * (job.cost / total if total > 0 else 1 / len(jobs))
+
+    def _post(self, loop: asyncio.AbstractEventLoop, entry: Session | OneShot, job: Job,
+              result: Rendered | BaseException) -> None:
+        """An encode lane's result for ``job`` (on its worker), posted to the loop (a lane's results in order)."""
+        with contextlib.suppress(RuntimeError):  # the loop is closed: nobody waits for it any more
+            loop.call_soon_threadsafe(self._delivered, entry, job, result)
+
+    def _delivered(self, entry: Session | OneShot, job: Job, result: Rendered | BaseException) -> None:
+        """A frame's result to its session (on the loop), its stage times to the metrics."""
+        if isinstance(result, Rendered):
+            t = result.timings
             for stage in STAGES:
-                m.stage.labels(stage).observe(getattr(t, f"{stage}_ms") / 1e3)
+                self.metrics.stage.labels(stage).observe(getattr(t, f"{stage}_ms") / 1e3)
+        entry.deliver(job, result)
 
     # ---------------------------------------------------------------------------------------------- avatars
     def _check_read(self, principal: Principal, avatar_id: str, field: str = "id") -> None:
@@ -796,13 +838,13 @@ def _attributed(exc: BaseException) -> BaseException:
                            field="frame")
 
 
-def _render_isolated(entry: Loaded, jobs: list[Job], encoders: list[Encoder]
-                     ) -> tuple[list[Rendered | BaseException], float]:
+def _render_isolated(entry: Loaded, jobs: list[Job], encoders: list[Encoder], encode: bool = True
+                     ) -> tuple[list[Rendered | Unencoded | BaseException], float]:
     """:func:`_render`, and when the batched call fails, each job again on its own, so a failure is reported to the
     job that caused it only (runs on the render thread). Returns the results and the seconds spent."""
     start = time.perf_counter()
     try:
-        results = _render(entry, jobs, encoders)
+        results = _render(entry, jobs, encoders, encode)
     except Exception as e:  # noqa: BLE001 - attributed below
         if len(jobs) == 1:
             results = [e]
@@ -811,41 +853,79 @@ def _render_isolated(entry: Loaded, jobs: list[Job], encoders: list[Encoder]
             results = []
             for job, encoder in zip(jobs, encoders, strict=True):
                 try:
-                    results += _render(entry, [job], [encoder])
+                    results += _render(entry, [job], [encoder], encode)
                 except Exception as e1:  # noqa: BLE001 - this job's own failure
                     results.append(e1)
     results = [_attributed(r) if isinstance(r, BaseException) else r for r in results]
     return results, time.perf_counter() - start
 
 
-def _render(entry: Loaded, jobs: list[Job], encoders: list[Encoder]) -> list[Rendered | BaseException]:
-    """Render B jobs of one avatar in one call and encode each (runs on the render thread)."""
+def _render_pipelined(entry: Loaded, jobs: list[Job], encoders: list[Encoder], lanes: EncodeLanes,
+                      done: list[Callable[[Rendered | BaseException], None]]) -> tuple[bool, float]:
+    """Render B jobs as :func:`_render_isolated` does, then hand each frame (or its error, which keeps its place
+    among its session's frames) to its encoder's lane, whose worker encodes it and calls the job's ``done`` with
+    the result; returns at once (whether any frame rendered, the render's seconds) and the render thread goes on
+    with the next batch while these encode (runs on the render thread)."""
+    try:
+        frames, seconds = _render_isolated(entry, jobs, encoders, encode=False)
+    except Exception as e:  # noqa: BLE001 - cannot happen (_render_isolated returns errors); defensive
+        frames, seconds = [_attributed(e)] * len(jobs), 0.0
+    for job, encoder, frame, then in zip(jobs, encoders, frames, done, strict=True):
+        work = (functools.partial(_encode, job, encoder, frame) if isinstance(frame, Unencoded)
+                else functools.partial(_attributed, frame))  # already attributed: itself
+        try:
+            lanes.submit(encoder, work, then)
+        except RuntimeError:  # the lanes are shut down (the engine is closing): never encoded
+            then(Unavailable("the server is shutting down; connect to another replica"))
+    return any(isinstance(f, Unencoded) for f in frames), seconds
+
+
+@dataclass
+class Unencoded:
+    """A rendered frame before its encode: its [H, W, 4] uint8 RGBA, the render's stage timings, the batch size."""
+
+    image: Any
+    timings: dict[str, float]
+    batch: int
+
+
+def _render(entry: Loaded, jobs: list[Job], encoders: list[Encoder], encode: bool = True
+            ) -> list[Rendered | Unencoded | BaseException]:
+    """Render B jobs of one avatar in one call and encode each (runs on the render thread); ``encode`` False: the
+    frames as rendered, each to be passed to :func:`_encode`."""
     from .adapters import resolve_frames
 
     failed = resolve_frames(jobs)  # adapter-driven frames, one adapter run per adapter; refused ones never render
     if failed:
         kept = [i for i in range(len(jobs)) if i not in failed]
-        done = iter(_render(entry, [jobs[i] for i in kept], [encoders[i] for i in kept]) if kept else [])
+        done = iter(_render(entry, [jobs[i] for i in kept], [encoders[i] for i in kept], encode) if kept else [])
         return [failed[i] if i in failed else next(done) for i in range(len(jobs))]
     start = time.perf_counter()
     for job in jobs:
         job.started = start
     frames = Frame.stack([j.frame for j in jobs])
     cameras = Cameras.cat([j.camera for j in jobs])
-    out = entry.renderer.render(frames, cameras, torch.stack([j.background for j in jobs]))
-    images = to_rgba8(out.rgb, out.alpha)
-    t = out.timings
-    results: list[Rendered | BaseException] = []
-    for job, encoder, image in zip(jobs, encoders, images, strict=True):
-        t0 = time.perf_counter()
-        try:
-            data = encoder.encode(image)
-        except Exception as e:  # noqa: BLE001 - reported to that session only
-            results.append(e)
-            continue
-        t1 = time.perf_counter()
-        results.append(Rendered(data, pb.StageTimings(
-            queue_ms=(job.started - job.received) * 1e3, blend_ms=t.get("blend", 0.0), lbs_ms=t.get("lbs", 0.0),
-            raster_ms=t.get("raster", 0.0), encode_ms=(t1 - t0) * 1e3, total_ms=(t1 - job.received) * 1e3,
-            batch=len(jobs))))
-    return results
+    # 8-bit RGBA as the encoders take it (the native renderer writes it from its compositing loop)
+    schedule = Schedule.baseline() if any(j.reference for j in jobs) else None  # None: the renderer's own
+    images, timings = entry.renderer.render_rgba8(frames, cameras, torch.stack([j.background for j in jobs]),
+                                                  schedule=schedule)
+    rendered = [Unencoded(image, timings, len(jobs)) for image in images]
+    if not encode:
+        return rendered
+    return [_encode(job, encoder, frame) for job, encoder, frame in zip(jobs, encoders, rendered, strict=True)]
+
+
+def _encode(job: Job, encoder: Encoder, frame: Unencoded) -> Rendered | BaseException:
+    """One rendered frame through its session's encoder, with its timings (an encoder's error is returned: it is
+    that session's only)."""
+    t0 = time.perf_counter()
+    try:
+        data = encoder.encode(frame.image)
+    except Exception as e:  # noqa: BLE001 - reported to that session only
+        return _attributed(e)
+    t1 = time.perf_counter()
+    t = frame.timings
+    return Rendered(data, pb.StageTimings(
+        queue_ms=(job.started - job.received) * 1e3, blend_ms=t.get("blend", 0.0), lbs_ms=t.get("lbs", 0.0),
+        raster_ms=t.get("raster", 0.0), encode_ms=(t1 - t0) * 1e3, total_ms=(t1 - job.received) * 1e3,
+        batch=frame.batch))

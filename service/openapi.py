@@ -85,6 +85,8 @@ def render_request_schema(max_size: int, id_pattern: str) -> dict[str, Any]:
         "codec": {"type": "string", "enum": ["CODEC_UNSPECIFIED", "CODEC_JPEG", "CODEC_PNG", "CODEC_RAW_RGBA"]},
         "quality": {"type": "integer", "minimum": 0, "maximum": 100, "description": "JPEG quality (0: default)"},
         "frame": frame,
+        "reference": {"type": "boolean", "description": "render with every speed mechanism off (the same pixels, "
+                                                        "slower): for checking them"},
     }, "examples": [{"avatar_id": "demo", "width": 256, "height": 256, "codec": "CODEC_PNG",
                      "frame": {"index": 1}}]}
 

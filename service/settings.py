@@ -29,6 +29,18 @@ class Settings(BaseSettings):
 
     backend: str | None = Field(None, description="rasterizer backend (default: native where built)")
     render_threads: int = Field(0, ge=0, description="native render threads (0: all cores)")
+    encode_threads: int = Field(
+        2, ge=0, le=64, description="threads that encode rendered frames (JPEG, PNG, H.264) off the render thread, "
+                                    "which goes on with the next batch meanwhile; a batch's frames encode in "
+                                    "parallel, each stream's one at a time and in order. 0: on the render thread, "
+                                    "after each batch's render")
+    raster_lazy_tiles: bool = Field(True, description="native compositing: a tile's splats gathered 64 at a time "
+                                                      "and the tile stopped once every pixel has (same pixels)")
+    raster_square_blocks: bool = Field(True, description="native compositing in 4x4-pixel blocks instead of 8x2 "
+                                                         "(same pixels)")
+    raster_direct_rgba8: bool = Field(True, description="native: 8-bit RGBA for the encoders written by the "
+                                                        "compositing loop, not converted from float images after it "
+                                                        "(same pixels)")
     cache_bytes: int = Field(4 << 30, ge=1 << 20, description="memory budget of loaded avatars")
     max_sessions: int = Field(32, ge=1, description="concurrent streams per process; more get RESOURCE_EXHAUSTED")
     max_in_flight: int = Field(2, ge=1, le=16, description="default frames sent but not acknowledged")

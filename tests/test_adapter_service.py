@@ -202,13 +202,13 @@ def test_adapter_nan_output_is_a_frame_error_and_never_reaches_the_renderer(serv
     assert put_adapter(http, "sqrt", sqrt_adapter(result.manifest, weights),
                        {**result.manifest.to_dict(), "id": "sqrt"}).status_code == 201
     seen = []
-    render = AvatarRenderer.render
+    render = AvatarRenderer.render_rgba8  # what the engine calls
 
     def spy(self, frame, *args, **kwargs):
         seen.append(bool(torch.isfinite(frame.expression).all() and torch.isfinite(frame.joint_rotations).all()))
         return render(self, frame, *args, **kwargs)
 
-    monkeypatch.setattr(AvatarRenderer, "render", spy)
+    monkeypatch.setattr(AvatarRenderer, "render_rgba8", spy)
     with grpc.insecure_channel(server.grpc_target) as channel:
         stream = GrpcStream(pb_grpc.RenderServiceStub(channel), avatar_id=AVATAR, width=SIZE, height=SIZE,
                             codec=pb.CODEC_PNG, adapter="sqrt")

@@ -384,15 +384,15 @@ def test_a_frame_that_fails_to_render_fails_only_its_own_session(live_server, mo
         config = pb.SessionConfig(avatar_id="demo", width=SIZE, codec=pb.CODEC_RAW_RGBA)
         sessions = [await engine.open(config, "test") for _ in range(2)]
         renderer = sessions[0].entry.renderer
-        render = renderer.render
+        render = renderer.render_rgba8  # what the engine calls
 
-        def faulty(frame, cameras, background=None):
+        def faulty(frame, cameras, background=None, **kwargs):
             calls.append(frame.batch_size)
             if background is not None and any(np.allclose(b.tolist(), MAGIC) for b in background.reshape(-1, 3)):
                 raise RuntimeError("the rasterizer gave up")
-            return render(frame, cameras, background)
+            return render(frame, cameras, background, **kwargs)
 
-        monkeypatch.setattr(renderer, "render", faulty)
+        monkeypatch.setattr(renderer, "render_rgba8", faulty)
         out = []
         for round_ in (1, 2):
             for i, s in enumerate(sessions):  # both poses arrive before the scheduler runs: one batch
@@ -418,6 +418,27 @@ def test_a_frame_that_fails_to_render_fails_only_its_own_session(live_server, mo
 
 
 # ------------------------------------------------------------------------------- finding 5: budget, fairness
+def test_a_reference_render_runs_alone_with_every_mechanism_off_and_gives_the_same_pixels(stub, monkeypatch):
+    """RenderRequest.reference (what `bench stream --verify` asks for): the native renderer's baseline schedule,
+    never batched with other frames; the pixels are those of a normal render."""
+    from render_core.raster.native import Schedule
+    from render_core.renderer import AvatarRenderer
+
+    seen = []
+    render = AvatarRenderer.render_rgba8
+
+    def spy(self, frame, *args, **kwargs):
+        seen.append((frame.batch_size, kwargs.get("schedule")))
+        return render(self, frame, *args, **kwargs)
+
+    monkeypatch.setattr(AvatarRenderer, "render_rgba8", spy)
+    pose = pb.FrameParams(joints={"neck": pb.Rotation(values=[0.1, 0.2, 0])})
+    frames = {ref: stub.Render(pb.RenderRequest(avatar_id="demo", width=SIZE, codec=pb.CODEC_RAW_RGBA, frame=pose,
+                                                reference=ref)).frame for ref in (True, False)}
+    assert seen == [(1, Schedule.baseline()), (1, None)]
+    assert frames[True].data == frames[False].data and len(frames[True].data) == SIZE * SIZE * 4
+
+
 def test_a_frame_over_the_budget_is_refused_naming_the_size_or_camera(live_server, stub, monkeypatch):
     engine = live_server.engine
     avatar = engine.cache.get("demo").avatar

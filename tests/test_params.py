@@ -3,6 +3,7 @@ field the client sent, and the same frames and cameras as a driving file's line 
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -103,3 +104,119 @@ def test_a_camera_is_parsed_without_a_frame(avatar, monkeypatch):
     monkeypatch.setattr(drive.Frame, "from_params", no_frame)
     params.camera(avatar, pb.Camera(preset="up"), OUT)
     drive.parse_camera(avatar, {"yaw": 10}, 48, 32)
+
+
+# ------------------------------------------------------------------------------- joints: one batched call per kind
+def _joint_by_joint(avatar, msg):
+    """The joints of ``msg`` as service.params built them before they were batched: each joint's own tensor,
+    conversion and float64 check, in the message's order, the first problem raised (the reference)."""
+    from render_core.rotation import axis_angle_to_matrix, rot6d_to_matrix
+    from service.errors import some
+
+    rotations = torch.eye(3).expand(1, avatar.num_joints, 3, 3).clone()
+    for name, rot in msg.joints.items():
+        if name not in avatar.joint_names:
+            raise InvalidArgument(f"unknown joint {some([name])}; this avatar's joints: "
+                                  f"{some(avatar.joint_names, 10)}", field="joints")
+        field, values = f"joints.{name}", list(rot.values)
+        if len(values) not in (3, 6):
+            raise InvalidArgument(f"expected axis-angle (3 values) or 6D (6 values), got {len(values)}", field=field)
+        if not all(math.isfinite(v) for v in values):
+            raise InvalidArgument("values must be finite (no NaN or Infinity)", field=field)
+        v = torch.tensor(values, dtype=torch.float32)
+        m = axis_angle_to_matrix(v) if len(values) == 3 else rot6d_to_matrix(v)
+        md = m.double()
+        ok = bool(torch.isfinite(md).all())
+        ok = ok and float((md @ md.T - torch.eye(3, dtype=torch.float64)).abs().max()) <= 1e-3
+        if not (ok and float(torch.linalg.det(md)) > 1 - 1e-3):
+            raise InvalidArgument("not a rotation: 6D needs two non-zero, non-parallel 3-vectors (the first two rows "
+                                  "of the matrix); axis-angle an angle in radians of moderate size", field=field)
+        rotations[0, avatar.joint_names.index(name)] = m
+    return rotations
+
+
+_BAD_JOINTS = [  # (name, values): each a problem of its own kind
+    ("elbow", [0.0, 0.0, 0.0]), (None, [0.1, 0.2]), (None, [0.0] * 7), (None, [math.nan, 0.0, 0.0]),
+    (None, [0.0, 0.0, 0.0, math.inf, 1.0, 0.0]), (None, [0.0] * 6), (None, [1.0, 0.0, 0.0, 2.0, 0.0, 0.0]),
+    (None, [1e20, 0.0, 0.0]), (None, [1e300, 0.0, 0.0, 0.0, 1.0, 0.0]),
+]
+
+
+def _random_joints(avatar, rng, bad: bool) -> dict:
+    names = list(rng.permutation(avatar.joint_names)[: rng.integers(0, avatar.num_joints + 1)])
+    joints = {}
+    for name in names:
+        if rng.random() < 0.5:
+            angle = rng.choice([1e-6, 0.1, 1.0, 3.0])
+            joints[name] = (rng.uniform(-1, 1, 3) * angle).tolist()
+        else:
+            joints[name] = rng.normal(0, 1, 6).tolist()
+    if bad:
+        for _ in range(rng.integers(1, 3)):
+            name, values = _BAD_JOINTS[rng.integers(len(_BAD_JOINTS))]
+            joints[name or avatar.joint_names[rng.integers(avatar.num_joints)]] = values
+    return {name: pb.Rotation(values=values) for name, values in joints.items()}
+
+
+def test_batched_joints_are_bit_identical_to_joint_by_joint_and_fail_alike(avatar):
+    """Every joint is built and checked in one batched call per kind, yet each frame's rotations are bit for bit
+    the ones a call per joint gives (random axis-angle, small angles included, and 6D, mixed), and a message with
+    problems fails with the error (field and message) of the first joint in the message's order that has one."""
+    rng = np.random.default_rng(7)
+    names = list(avatar.expression_names)
+    frames = errors = 0
+    for i in range(400):
+        msg = pb.FrameParams(joints=_random_joints(avatar, rng, bad=i % 2 == 1))
+        try:
+            want = _joint_by_joint(avatar, msg)
+        except InvalidArgument as e:
+            with pytest.raises(InvalidArgument) as got:
+                params.frame(avatar, msg, names)
+            assert (got.value.field, got.value.detail) == (e.field, e.detail), list(msg.joints)
+            errors += 1
+            continue
+        got = params.frame(avatar, msg, names).joint_rotations
+        assert got.dtype == torch.float32 and torch.equal(got, want), list(msg.joints)
+        frames += 1
+    assert frames > 150 and errors > 150
+
+
+def test_a_problem_names_the_first_joint_in_the_message_order(avatar):
+    """The batch groups the axis-angle joints before the 6D ones; the error still names the first joint of the
+    message with a problem, of whichever kind, and a problem found before the batch (an unknown name, the wrong
+    count, NaN) does not hide a joint before it that is not a rotation."""
+    parallel, nan_aa, huge_aa = [1.0, 0.0, 0.0, 2.0, 0.0, 0.0], [math.nan, 0.0, 0.0], [1e20, 0.0, 0.0]
+    for a, b in (("jaw", "neck"), ("neck", "jaw"), ("eye_l", "root"), ("root", "eye_l")):
+        msg = pb.FrameParams(joints={a: pb.Rotation(values=parallel), b: pb.Rotation(values=huge_aa)})
+        first = list(msg.joints)[0]  # the message's order (the map's), not the order given here
+        with pytest.raises(InvalidArgument) as e:
+            params.frame(avatar, msg, list(avatar.expression_names))
+        assert e.value.field == f"joints.{first}" and e.value.detail.startswith("not a rotation")
+        msg = pb.FrameParams(joints={a: pb.Rotation(values=parallel), b: pb.Rotation(values=nan_aa)})
+        first = list(msg.joints)[0]
+        with pytest.raises(InvalidArgument) as e:
+            params.frame(avatar, msg, list(avatar.expression_names))
+        assert e.value.field == f"joints.{first}"
+        assert e.value.detail.startswith("not a rotation" if first == a else "values must be finite")
+
+
+def test_joints_are_converted_and_checked_once_per_kind_not_per_joint(avatar, monkeypatch):
+    calls = []
+
+    def counted(fn):
+        def wrapper(x):
+            calls.append((fn.__name__, tuple(x.shape)))
+            return fn(x)
+        return wrapper
+
+    monkeypatch.setattr(params, "axis_angle_to_matrix", counted(params.axis_angle_to_matrix))
+    monkeypatch.setattr(params, "rot6d_to_matrix", counted(params.rot6d_to_matrix))
+    joints = {"root": [0.1, 0, 0], "neck": [0, 0.2, 0], "jaw": [1, 0, 0, 0, 1, 0], "eye_l": [0, 0, 0.1],
+              "eye_r": [0, 1, 0, -1, 0, 0]}
+    frame = params.frame(avatar, pb.FrameParams(joints={n: pb.Rotation(values=v) for n, v in joints.items()}),
+                         list(avatar.expression_names))
+    assert sorted(calls) == [("axis_angle_to_matrix", (3, 3)), ("rot6d_to_matrix", (2, 6))]
+    frame.check(avatar)
+    calls.clear()
+    params.frame(avatar, pb.FrameParams(), list(avatar.expression_names))
+    assert calls == []

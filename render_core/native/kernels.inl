@@ -452,14 +452,6 @@ static void tile_row_spans(const TileSplat* splats, int count, int cpad, int yb,
     }
 }
 
-// x in [0, 1] (clamped) -> uint8 as to_rgba8 rounds: x * 255 rounded to float, then + 0.5, truncated. The barrier
-// keeps the compiler from fusing the two into one FMA (one rounding instead of two).
-static inline uint8_t quantize8(float x) {
-    float p = std::min(std::max(x, 0.0f), 1.0f) * 255.0f;
-    __asm__("" : "+x"(p));
-    return uint8_t(p + 0.5f);
-}
-
 constexpr int kLazyChunk = 64;  // splats gathered and spanned at a time by the lazy schedule (a multiple of W)
 
 // One 16x16 tile, in blocks of BR rows x BW columns, one vector each (BR x BW = W lanes). A block composites the
@@ -571,25 +563,32 @@ static void composite_tile(const TileSplat* sorted, const uint32_t* pos, int cou
             if (!V::any(live)) block_live[bi] = false, --alive;
         }
     }
+    // The block's pixels, computed a vector at a time: colour over the background, alpha, depth and, for RGBA8,
+    // x * 255 rounded to float, then + 0.5 (as to_rgba8: two roundings, never one FMA), truncated when stored.
+    const F bg[3] = {V::set1(background[0]), V::set1(background[1]), V::set1(background[2])};
+    const F k255 = V::set1(255.0f), half = V::set1(0.5f);
     for (int bi = 0; bi < nblocks; ++bi) {
         const int r0 = bi / bcols * BR, x0 = xb + bi % bcols * BW;
-        const float* st = &state[bi][0][0];
+        const F T = V::load(state[bi][0]);
+        alignas(64) float px[8][W];
+        for (int c = 0; c < 3; ++c) V::store(px[c], V::fma(T, bg[c], V::load(state[bi][1 + c])));
+        V::store(px[3], one - T);
+        if (o.rgba8 != nullptr)
+            for (int c = 0; c < 4; ++c)
+                V::store(px[4 + c], V::opaque(V::min(V::max(V::load(px[c]), zero), one) * k255) + half);
         for (int l = 0; l < W; ++l) {
             const int x = x0 + l % BW, r = l / BW;
             if (x >= xe || r0 + r >= rows) continue;
             const size_t p = size_t(yb + r0 + r) * cam.width + x;
-            const float t = st[l];
-            const float cr = st[W + l] + t * background[0];
-            const float cg = st[2 * W + l] + t * background[1];
-            const float cb = st[3 * W + l] + t * background[2];
-            if (o.rgb != nullptr) o.rgb[p * 3 + 0] = cr, o.rgb[p * 3 + 1] = cg, o.rgb[p * 3 + 2] = cb;
-            if (o.alpha != nullptr) o.alpha[p] = 1.0f - t;
-            if (o.depth != nullptr) o.depth[p] = st[4 * W + l];
+            if (o.rgb != nullptr) o.rgb[p * 3 + 0] = px[0][l], o.rgb[p * 3 + 1] = px[1][l], o.rgb[p * 3 + 2] = px[2][l];
+            if (o.alpha != nullptr) o.alpha[p] = px[3][l];
+            if (o.depth != nullptr) o.depth[p] = state[bi][4][l];
             if (o.rgba8 != nullptr) {
                 uint8_t* q8 = o.rgba8 + p * 4;
-                q8[0] = quantize8(cr), q8[1] = quantize8(cg), q8[2] = quantize8(cb), q8[3] = quantize8(1.0f - t);
+                q8[0] = uint8_t(px[4][l]), q8[1] = uint8_t(px[5][l]), q8[2] = uint8_t(px[6][l]);
+                q8[3] = uint8_t(px[7][l]);
             }
-            if constexpr (Train) o.T[p] = t, o.last[p] = uint32_t(st[5 * W + l]);
+            if constexpr (Train) o.T[p] = state[bi][0][l], o.last[p] = uint32_t(state[bi][5][l]);
         }
     }
 }

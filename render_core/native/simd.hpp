@@ -82,6 +82,7 @@ struct Scalar {
     static bool any(M m) { return m; }
     static unsigned bits(M m) { return m ? 1u : 0u; }
     static F select(M m, F a, F b) { return m ? a : b; }
+    static F opaque(F a) { __asm__("" : "+x"(a)); return a; }  // a value the compiler cannot fuse into an FMA
     static float hsum(F a) { return a; }
 };
 
@@ -130,6 +131,7 @@ struct Avx2 {
     static bool any(M m) { return _mm256_movemask_ps(m.v) != 0; }
     static unsigned bits(M m) { return unsigned(_mm256_movemask_ps(m.v)); }
     static F select(M m, F a, F b) { return _mm256_blendv_ps(b.v, a.v, m.v); }
+    static F opaque(F a) { __asm__("" : "+x"(a.v)); return a; }
     static float hsum(F a) {
         __m128 s = _mm_add_ps(_mm256_castps256_ps128(a.v), _mm256_extractf128_ps(a.v, 1));
         s = _mm_add_ps(s, _mm_movehl_ps(s, s));
@@ -198,6 +200,7 @@ struct Avx512 {
     static bool any(M m) { return m.k != 0; }
     static unsigned bits(M m) { return unsigned(m.k); }
     static F select(M m, F a, F b) { return _mm512_mask_blend_ps(m.k, b.v, a.v); }
+    static F opaque(F a) { __asm__("" : "+v"(a.v)); return a; }
     static float hsum(F a) { return _mm512_reduce_add_ps(a.v); }
     static F ldexp(F y, F n) { return _mm512_scalef_ps(y.v, n.v); }  // y 2^n in one instruction
     static F frexp(F x, F& e) {

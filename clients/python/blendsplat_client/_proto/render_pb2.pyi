@@ -283,7 +283,7 @@ class StreamResponse(_message.Message):
     def __init__(self, header: _Optional[_Union[StreamHeader, _Mapping]] = ..., frame: _Optional[_Union[RenderedFrame, _Mapping]] = ..., error: _Optional[_Union[Status, _Mapping]] = ..., status: _Optional[_Union[Status, _Mapping]] = ...) -> None: ...
 
 class RenderRequest(_message.Message):
-    __slots__ = ("avatar_id", "width", "height", "codec", "quality", "expression_names", "frame")
+    __slots__ = ("avatar_id", "width", "height", "codec", "quality", "expression_names", "frame", "reference")
     AVATAR_ID_FIELD_NUMBER: _ClassVar[int]
     WIDTH_FIELD_NUMBER: _ClassVar[int]
     HEIGHT_FIELD_NUMBER: _ClassVar[int]
@@ -291,6 +291,7 @@ class RenderRequest(_message.Message):
     QUALITY_FIELD_NUMBER: _ClassVar[int]
     EXPRESSION_NAMES_FIELD_NUMBER: _ClassVar[int]
     FRAME_FIELD_NUMBER: _ClassVar[int]
+    REFERENCE_FIELD_NUMBER: _ClassVar[int]
     avatar_id: str
     width: int
     height: int
@@ -298,7 +299,8 @@ class RenderRequest(_message.Message):
     quality: int
     expression_names: _containers.RepeatedScalarFieldContainer[str]
     frame: FrameParams
-    def __init__(self, avatar_id: _Optional[str] = ..., width: _Optional[int] = ..., height: _Optional[int] = ..., codec: _Optional[_Union[Codec, str]] = ..., quality: _Optional[int] = ..., expression_names: _Optional[_Iterable[str]] = ..., frame: _Optional[_Union[FrameParams, _Mapping]] = ...) -> None: ...
+    reference: bool
+    def __init__(self, avatar_id: _Optional[str] = ..., width: _Optional[int] = ..., height: _Optional[int] = ..., codec: _Optional[_Union[Codec, str]] = ..., quality: _Optional[int] = ..., expression_names: _Optional[_Iterable[str]] = ..., frame: _Optional[_Union[FrameParams, _Mapping]] = ..., reference: _Optional[bool] = ...) -> None: ...
 
 class RenderResponse(_message.Message):
     __slots__ = ("frame",)
