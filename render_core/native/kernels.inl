@@ -452,7 +452,7 @@ static void tile_row_spans(const TileSplat* splats, int count, int cpad, int yb,
     }
 }
 
-constexpr int kLazyChunk = 64;  // splats gathered and spanned at a time by the lazy schedule (a multiple of W)
+constexpr int kLazyChunk = 128;  // splats gathered and spanned at a time by the lazy schedule (a multiple of W)
 
 // One 16x16 tile, in blocks of BR rows x BW columns, one vector each (BR x BW = W lanes). A block composites the
 // Gaussians that reach it, in depth order, branch-free, with its transmittance, colour and depth in registers,
