@@ -103,6 +103,7 @@ def test_bench_render_compares_the_schedules_side_by_side(dense_head):
     assert cmp["baseline"]["lazy_tiles"] is False and cmp["schedule"]["lazy_tiles"] is True
     assert {"blend", "lbs", "raster", "bin", "total"} == set(cmp["schedule"]["ms"])
     assert report["schedule"] == {"lazy_tiles": True, "square_blocks": True, "direct_rgba8": True}
+    assert report["frames_per_core_second"] == pytest.approx(report["aggregate_fps"] / report["threads"], rel=1e-3)
     off = bench_render("native", avatar=dense_head, size=32, frames=1, warmup=0, schedule="off")
     assert off["schedule"]["square_blocks"] is False and "vs_baseline" not in off
     with pytest.raises(Exception, match="schedule"):

@@ -251,6 +251,8 @@ def bench_render(
         probe = max((native.bandwidth_probe(stats.blend_bytes, threads) for _ in range(3)), key=lambda p: p["gbps"])
         bound_ms = stats.blend_bytes / (probe["gbps"] * 1e9) * 1e3
         report["simd"] = timed["last_timings"].get("isa")
+        # the CPU cost: frames per second of one core (the render's threads busy for its wall time)
+        report["frames_per_core_second"] = round(fps * streams / max(int(report["threads"]), 1), 3)
         report["schedule"] = asdict(renderer.schedule)
         if schedule == "compare":
             log.info("the same frames with the baseline schedule and this one, side by side")
