@@ -57,21 +57,27 @@ void joint_transforms(const AvatarView& av, const float* rot, float* A) {
     }
 }
 
-// fb.order = indices of the visible splats sorted by depth, ties in index order: a stable LSD radix sort
-// (3 passes of 11 bits over the bits of the positive float depths).
+// fb.order = indices of the visible splats sorted by depth, ties in index order: a stable LSD radix sort of 11
+// bits a pass over the bits of the positive float depths (whose order is their bits' order) less the smallest:
+// only as many passes as the frame's range of bits needs (two for a head, whose depths span a narrow range).
 void sort_visible_by_depth(const Splat* s, int n, FrameBins& fb) {
     constexpr int kBuckets = 2048;
     fb.order.resize(n), fb.keys.resize(n), fb.tmp.resize(n), fb.tmp_keys.resize(n);
     int m = 0;
+    uint32_t lo = UINT32_MAX, hi = 0;
     for (int i = 0; i < n; ++i) {
         if (!(s[i].x0 < s[i].x1)) continue;
         fb.order[m] = uint32_t(i);
-        std::memcpy(&fb.keys[m], &s[i].t.depth, 4);
+        uint32_t key;
+        std::memcpy(&key, &s[i].t.depth, 4);
+        fb.keys[m] = key, lo = std::min(lo, key), hi = std::max(hi, key);
         ++m;
     }
+    for (int j = 0; j < m; ++j) fb.keys[j] -= lo;
+    const uint32_t range = m > 0 ? hi - lo : 0;
     fb.hist.resize(kBuckets);
     uint32_t* h = fb.hist.data();
-    for (int sh = 0; sh < 32; sh += 11) {
+    for (int sh = 0; sh < 32 && (sh == 0 || (range >> sh) != 0); sh += 11) {
         std::fill(h, h + kBuckets, 0u);
         const uint32_t* idx = fb.order.data();
         const uint32_t* key = fb.keys.data();
