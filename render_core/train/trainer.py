@@ -244,11 +244,6 @@ class _Targets:
         return rgb, mask
 
 
-def _frames_to(frames: Frame, device: torch.device) -> Frame:
-    return Frame(frames.expression.to(device), frames.joint_rotations.to(device),
-                 None if frames.eyelids is None else frames.eyelids.to(device))
-
-
 def _select(frames: Frame, j: int) -> Frame:
     return Frame(frames.expression[j:j + 1], frames.joint_rotations[j:j + 1],
                  None if frames.eyelids is None else frames.eyelids[j:j + 1])
@@ -394,9 +389,9 @@ class Trainer:
         tracking = self.dataset.tracking
         check_compatible(view, tracking)
         frames, cams = frame_inputs(view, tracking, self.train_idx)
-        self._frames, self._cams = _frames_to(frames, dev), cams.to(device=dev)
+        self._frames, self._cams = frames.to(device=dev), cams.to(device=dev)
         frames, cams = frame_inputs(view, tracking, [self.preview_index])
-        self._preview_inputs = _frames_to(frames, dev), cams.to(device=dev)
+        self._preview_inputs = frames.to(device=dev), cams.to(device=dev)
         self._model, self._optimizer, self._generator, self._strategy = model, opt, gen, strategy
         self.iteration = self._start = self._saved = start
         self._resumed = state is not None
