@@ -94,6 +94,8 @@ def test_unknown_schedule_bits_are_refused(dense_head):
     rgb, alpha, depth = (np.zeros(s, np.float32) for s in ((1, 16, 16, 3), (1, 16, 16), (1, 16, 16)))
     with pytest.raises(ValueError, match="flags"):
         _native.render(packed.handle, *args, rgb, alpha, depth, "auto", 0, 64)
+    with pytest.raises(ValueError, match="flags"):
+        _native.render_rgba8(packed.handle, *args, np.zeros((1, 16, 16, 4), np.uint8), "auto", 0, 64)
 
 
 def test_bench_render_compares_the_schedules_side_by_side(dense_head):

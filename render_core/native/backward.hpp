@@ -58,9 +58,9 @@ struct RasterContext {
 
 struct BackwardKernels {
     const char* name;
-    // As Kernels::raster_tile, and also each pixel's final transmittance T and last-contributor count (frame
-    // arrays [H * W], like alpha).
-    void (*raster_tile_train)(const TileSplat* splats, int count, int tx, int ty, const Cam& cam,
+    // As Kernels::raster_tile (the eager 8 x 2 schedule), and also each pixel's final transmittance T and
+    // last-contributor count (frame arrays [H * W], like alpha).
+    void (*raster_tile_train)(const TileSplat* sorted, const uint32_t* pos, int count, int tx, int ty, const Cam& cam,
                               const float* background, float* rgb, float* alpha, float* depth, float* T,
                               uint32_t* last);
     // Backward of one tile's compositing: moments of every (Gaussian, tile) pair of the tile, written at

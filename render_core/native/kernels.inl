@@ -595,7 +595,7 @@ static void composite_tile(const TileSplat* sorted, const uint32_t* pos, int cou
 
 // 8 x 2 pixels with 16 lanes, 8 x 1 with 8, 1 x 1 with one; square: 4 x 4, 4 x 2, 1 x 1.
 constexpr int kWideBW = W < 8 ? W : 8;
-constexpr int kSquareBW = W >= 16 ? 4 : W >= 8 ? 4 : W;
+constexpr int kSquareBW = W >= 8 ? 4 : W;
 
 static void raster_tile(const TileSplat* sorted, const uint32_t* pos, int count, int tx, int ty, const Cam& cam,
                         const float* background, const TileOut& out, unsigned flags) {
@@ -607,12 +607,12 @@ static void raster_tile(const TileSplat* sorted, const uint32_t* pos, int count,
 }
 
 // The training forward: the same image, plus T and the last contributor per pixel (see backward.inl).
-static void raster_tile_train(const TileSplat* splats, int count, int tx, int ty, const Cam& cam,
-                              const float* background, float* rgb, float* alpha, float* depth, float* Tout,
-                              uint32_t* last_out) {
+static void raster_tile_train(const TileSplat* sorted, const uint32_t* pos, int count, int tx, int ty,
+                              const Cam& cam, const float* background, float* rgb, float* alpha, float* depth,
+                              float* Tout, uint32_t* last_out) {
     TileOut o;
     o.rgb = rgb, o.alpha = alpha, o.depth = depth, o.T = Tout, o.last = last_out;
-    composite_tile<true, W / kWideBW, kWideBW>(splats, nullptr, count, tx, ty, cam, background, o, false);
+    composite_tile<true, W / kWideBW, kWideBW>(sorted, pos, count, tx, ty, cam, background, o, false);
 }
 
 const Kernels& kernels() {

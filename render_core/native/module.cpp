@@ -163,40 +163,52 @@ nb::dict timings(const bs::Timings& t, const bs::Kernels& k, int threads) {
     return d;
 }
 
-// The frame inputs of render / render_rgba8 checked; returns B.
-int check_frames(const bs::AvatarView& av, const In<float>& psi, const In<float>& rot, const In<float>& eyelids) {
-    require(psi.ndim() == 2 && psi.shape(1) == size_t(av.K), "expression: expected [B, K]");
-    const int B = int(psi.shape(0));
-    require(B >= 1, "expression: empty batch");
-    require_shape(rot, {size_t(B), size_t(av.J), 3, 3}, "joint_rotations");
-    require_shape(eyelids, {size_t(B), 2}, "eyelids");
-    return B;
+void check_flags(unsigned flags) {
+    require((flags & ~unsigned(bs::kRasterDefault)) == 0, "flags: unknown compositing schedule bits");
 }
 
-unsigned check_flags(unsigned flags) {
-    require((flags & ~unsigned(bs::kRasterDefault)) == 0, "flags: unknown compositing schedule bits");
-    return flags;
+// The inputs of render / render_rgba8: B frames and their cameras.
+struct FrameInputs {
+    In<float> psi, rot, eyelids, K, R, t;
+    int width, height;
+    bool antialiased;
+};
+
+// The frames checked against the avatar, and their cameras.
+std::vector<bs::Cam> check_frames(const bs::AvatarView& av, const FrameInputs& in) {
+    require(in.psi.ndim() == 2 && in.psi.shape(1) == size_t(av.K), "expression: expected [B, K]");
+    const int B = int(in.psi.shape(0));
+    require(B >= 1, "expression: empty batch");
+    require_shape(in.rot, {size_t(B), size_t(av.J), 3, 3}, "joint_rotations");
+    require_shape(in.eyelids, {size_t(B), 2}, "eyelids");
+    return make_cams(in.K, in.R, in.t, B, in.width, in.height, in.antialiased);
+}
+
+// The fused pipeline of render / render_rgba8 on checked inputs, into out.
+nb::dict render_into(const NativeAvatar& avatar, const FrameInputs& in, const std::vector<bs::Cam>& cams,
+                     const In<float>& bg, const bs::FrameOut& out, const std::string& isa, int threads,
+                     unsigned flags) {
+    const bs::Kernels& k = bs::select_kernels(isa);
+    const int nt = thread_count(threads);
+    check_flags(flags);
+    bs::Timings tm;
+    {
+        nb::gil_scoped_release release;
+        tm = bs::render_fused(avatar.view(), in.psi.data(), in.rot.data(), in.eyelids.data(), cams.data(),
+                              int(cams.size()), bg.data(), out, k, nt, flags);
+    }
+    return timings(tm, k, nt);
 }
 
 nb::dict render(const NativeAvatar& avatar, In<float> psi, In<float> rot, In<float> eyelids, In<float> K,
                 In<float> R, In<float> t, int width, int height, bool antialiased, In<float> bg, Out<float> rgb,
                 Out<float> alpha, Out<float> depth, const std::string& isa, int threads, unsigned flags) {
-    const bs::AvatarView& av = avatar.view();
-    const int B = check_frames(av, psi, rot, eyelids);
-    auto cams = make_cams(K, R, t, B, width, height, antialiased);
-    Outputs o{rgb, alpha, depth};
-    check_outputs(o, bg, B, width, height);
-    const bs::Kernels& k = bs::select_kernels(isa);
-    const int nt = thread_count(threads);
+    const FrameInputs in{psi, rot, eyelids, K, R, t, width, height, antialiased};
+    const auto cams = check_frames(avatar.view(), in);
+    check_outputs(Outputs{rgb, alpha, depth}, bg, int(cams.size()), width, height);
     bs::FrameOut out;
     out.rgb = rgb.data(), out.alpha = alpha.data(), out.depth = depth.data();
-    bs::Timings tm;
-    {
-        nb::gil_scoped_release release;
-        tm = bs::render_fused(av, psi.data(), rot.data(), eyelids.data(), cams.data(), B, bg.data(), out, k, nt,
-                              check_flags(flags));
-    }
-    return timings(tm, k, nt);
+    return render_into(avatar, in, cams, bg, out, isa, threads, flags);
 }
 
 // As render, straight to 8-bit RGBA [B, H, W, 4] (what to_rgba8 makes of render's rgb and alpha, bit for bit),
@@ -204,22 +216,13 @@ nb::dict render(const NativeAvatar& avatar, In<float> psi, In<float> rot, In<flo
 nb::dict render_rgba8(const NativeAvatar& avatar, In<float> psi, In<float> rot, In<float> eyelids, In<float> K,
                       In<float> R, In<float> t, int width, int height, bool antialiased, In<float> bg,
                       Out<uint8_t> rgba8, const std::string& isa, int threads, unsigned flags) {
-    const bs::AvatarView& av = avatar.view();
-    const int B = check_frames(av, psi, rot, eyelids);
-    auto cams = make_cams(K, R, t, B, width, height, antialiased);
-    require_shape(bg, {size_t(B), 3}, "background");
-    require_shape(rgba8, {size_t(B), size_t(height), size_t(width), 4}, "rgba8");
-    const bs::Kernels& k = bs::select_kernels(isa);
-    const int nt = thread_count(threads);
+    const FrameInputs in{psi, rot, eyelids, K, R, t, width, height, antialiased};
+    const auto cams = check_frames(avatar.view(), in);
+    require_shape(bg, {cams.size(), 3}, "background");
+    require_shape(rgba8, {cams.size(), size_t(height), size_t(width), 4}, "rgba8");
     bs::FrameOut out;
     out.rgba8 = rgba8.data();
-    bs::Timings tm;
-    {
-        nb::gil_scoped_release release;
-        tm = bs::render_fused(av, psi.data(), rot.data(), eyelids.data(), cams.data(), B, bg.data(), out, k, nt,
-                              check_flags(flags));
-    }
-    return timings(tm, k, nt);
+    return render_into(avatar, in, cams, bg, out, isa, threads, flags);
 }
 
 struct PosedInputs {
@@ -250,12 +253,13 @@ nb::dict rasterize(In<float> means, In<float> quats, In<float> scales, In<float>
     const bs::Kernels& k = bs::select_kernels(isa);
     const int nt = thread_count(threads);
     bs::PosedView pv{means.data(), quats.data(), scales.data(), opacities.data(), colors.data(), int(N)};
+    check_flags(flags);
+    bs::FrameOut out;
+    out.rgb = rgb.data(), out.alpha = alpha.data(), out.depth = depth.data();
     bs::Timings tm;
     {
         nb::gil_scoped_release release;
-        bs::FrameOut out;
-        out.rgb = rgb.data(), out.alpha = alpha.data(), out.depth = depth.data();
-        tm = bs::render_posed(pv, cams.data(), int(B), bg.data(), out, k, nt, check_flags(flags));
+        tm = bs::render_posed(pv, cams.data(), int(B), bg.data(), out, k, nt, flags);
     }
     return timings(tm, k, nt);
 }

@@ -155,14 +155,6 @@ void bin_frame(const Splat* s, int n, int tiles_x, int tiles, FrameBins& fb, int
     }
 }
 
-const TileSplat* gather_tile(const FrameBins& fb, int tile, std::vector<TileSplat>& local) {
-    const uint32_t o0 = fb.tile_offsets[tile], o1 = fb.tile_offsets[tile + 1];
-    if (local.size() < o1 - o0) local.resize(o1 - o0);
-    const uint32_t* pos = fb.binned.data() + o0;
-    for (uint32_t j = 0; j < o1 - o0; ++j) local[j] = fb.sorted[pos[j]];
-    return local.data();
-}
-
 namespace {
 
 // Depth-sort, bin and composite B frames of projected splats ([B, n] each); returns the binning time (ms).

@@ -38,9 +38,6 @@ struct FrameBins {
 // fb.sorted[fb.binned[j]] for j in [tile_offsets[t], tile_offsets[t + 1]), in depth order.
 void bin_frame(const Splat* s, int n, int tiles_x, int tiles, FrameBins& fb, int threads);
 
-// Tile t's splats, in depth order, copied into local (resized as needed); returns local.data().
-const TileSplat* gather_tile(const FrameBins& fb, int tile, std::vector<TileSplat>& local);
-
 // SIMD paths this build can run on this CPU, slowest first ("scalar", then "avx2", "avx512").
 std::vector<std::string> available_isas();
 // "auto" picks the fastest; an unavailable name throws std::invalid_argument listing the available ones.

@@ -101,8 +101,8 @@ Timings rasterize_train(const PosedView& pv, const Cam* cams, int B, const float
         const FrameBins& fb = bins[b];
         TrainFrame& f = ctx.frames[b];
         const size_t pix = size_t(b) * W * H;
-        static thread_local std::vector<TileSplat> local;
-        kb.raster_tile_train(gather_tile(fb, t, local), int(fb.tile_offsets[t + 1] - fb.tile_offsets[t]),
+        const uint32_t o0 = fb.tile_offsets[t];
+        kb.raster_tile_train(fb.sorted.data(), fb.binned.data() + o0, int(fb.tile_offsets[t + 1] - o0),
                              t % tiles_x, t / tiles_x, cams[b], bg + 3 * b, rgb + pix * 3, alpha + pix, depth + pix,
                              f.T.data(), f.last.data());
     }
