@@ -151,10 +151,8 @@ def compare_schedules(renderer: AvatarRenderer, cams: Cameras, frames: int, warm
                 stages[name].setdefault("total", []).append(total)
         identical = identical and bool(np.array_equal(images["baseline"], images["schedule"]))
     ms = {name: {k: round(statistics.median(v), 3) for k, v in rows.items()} for name, rows in stages.items()}
-    return {"baseline": {**asdict(runs["baseline"]), "ms": ms["baseline"],
-                         "fps": round(1000.0 / ms["baseline"]["total"] * len(cams), 2)},
-            "schedule": {**asdict(runs["schedule"]), "ms": ms["schedule"],
-                         "fps": round(1000.0 / ms["schedule"]["total"] * len(cams), 2)},
+    return {**{name: {**asdict(s), "ms": ms[name], "fps": round(1000.0 / ms[name]["total"] * len(cams), 2)}
+               for name, s in runs.items()},
             "speedup": round(ms["baseline"]["total"] / ms["schedule"]["total"], 3), "identical": identical,
             "frames": frames}
 
