@@ -42,7 +42,7 @@ __all__ = [
 ]
 
 # Tolerance on |R R^T - I| and det(R) for joint rotation matrices given to a Frame.
-_ROTATION_TOL = 1e-3
+ROTATION_TOL = 1e-3
 
 
 def _compute_dtype(dtype: torch.dtype) -> torch.dtype:
@@ -268,7 +268,7 @@ class Frame:
             err = (rd @ rd.transpose(-1, -2) - torch.eye(3, dtype=torch.float64, device=rd.device)).abs()
             per_joint = err.amax(dim=(0, 2, 3))
             det = torch.linalg.det(rd).amin(dim=0)
-            bad_mask = (per_joint > _ROTATION_TOL) | (det < 1 - _ROTATION_TOL)
+            bad_mask = (per_joint > ROTATION_TOL) | (det < 1 - ROTATION_TOL)
             if bool(bad_mask.any()):
                 bad = [avatar.joint_names[i] for i in bad_mask.nonzero().flatten().tolist()]
                 raise FrameError(f"not rotation matrices for joint(s) {_list(bad)}", field="joint_rotations")

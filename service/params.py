@@ -24,7 +24,7 @@ import torch
 from blendsplat.v1 import render_pb2 as pb
 from render_core.avatar import Avatar
 from render_core.camera import Cameras, calibration_problem
-from render_core.deform import Frame
+from render_core.deform import ROTATION_TOL, Frame
 from render_core.drive import calibrated_camera, default_camera, orbit_camera, preset_camera
 from render_core.rotation import axis_angle_to_matrix, rot6d_to_matrix
 
@@ -153,14 +153,15 @@ _EYE64 = np.eye(3)
 
 
 def _rotations_ok(m: torch.Tensor) -> np.ndarray:
-    """[n] bool: which of the [n, 3, 3] matrices are rotations, checked in float64: finite, orthonormal to 1e-3
-    (max |M M^T - I|), determinant above 1 - 1e-3 (numpy: on a few 3x3 matrices a fraction of torch's cost)."""
+    """[n] bool: which of the [n, 3, 3] matrices are rotations, checked in float64 as Frame.check does: finite,
+    orthonormal to ROTATION_TOL (max |M M^T - I|), determinant above 1 - ROTATION_TOL (numpy: on a few 3x3
+    matrices a fraction of torch's cost)."""
     md = m.numpy().astype(np.float64)
     ok = np.isfinite(md).all(axis=(1, 2))
     if not ok.all():
         md = np.where(ok[:, None, None], md, 0.0)  # the zero matrix fails below, without NaN warnings
-    ok &= np.abs(md @ md.transpose(0, 2, 1) - _EYE64).max(axis=(1, 2)) <= 1e-3
-    ok &= np.linalg.det(md) > 1 - 1e-3
+    ok &= np.abs(md @ md.transpose(0, 2, 1) - _EYE64).max(axis=(1, 2)) <= ROTATION_TOL
+    ok &= np.linalg.det(md) > 1 - ROTATION_TOL
     return ok
 
 
@@ -192,7 +193,7 @@ def _joint_rotations(avatar: Avatar, joints: Mapping[str, pb.Rotation]) -> tuple
         if group:
             at += [i for i, _ in group]
             matrices.append(convert(torch.tensor([v for _, v in group], dtype=torch.float32)))
-    m = (matrices[0] if len(matrices) == 1 else torch.cat(matrices)) if matrices else None
+    m = torch.cat(matrices) if matrices else None
     if m is not None:
         ok = _rotations_ok(m)
         if not ok.all():
