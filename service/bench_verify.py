@@ -120,7 +120,7 @@ async def verify(stub: pb_grpc.RenderServiceStub, avatar: str, size: int, codec:
     worst, at = min(figures, key=lambda f: f[0])
     values = [f[0] for f in figures]
     return {
-        "frames": len(figures), "reference": "Render RPC (a single frame, no stream state), PNG",
+        "frames": len(figures), "reference": "Render RPC, reference: every speed mechanism off, no stream state; PNG",
         "compared_in": f"{codec}, the cold render encoded as the server encodes" if codec == "jpeg" else codec,
         "psnr_db_min": round(worst, 2), "psnr_db_mean": round(float(np.mean(values)), 2),
         "identical": sum(v >= _cap() for v in values), "worst": {"stream": at.stream, "index": at.index},
