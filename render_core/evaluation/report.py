@@ -117,8 +117,28 @@ def _mean(values) -> float | None:
     return float(np.mean(vals)) if vals else None
 
 
+def _score(rgb: Tensor, gt: Tensor, mask: Tensor) -> dict[str, list]:
+    """Per-frame psnr, ssim and psnr_head of B predictions."""
+    pred = rgb.detach().to("cpu", torch.float64).clamp(0.0, 1.0)
+    gt, mask = gt.to(torch.float64), mask.to(torch.float64)
+    return {"psnr": [psnr(p, g) for p, g in zip(pred, gt, strict=True)],
+            "ssim": ssim(pred, gt, reduction="none").tolist(),
+            "psnr_head": [psnr_masked(p, g, m) for p, g, m in zip(pred, gt, mask, strict=True)]}
+
+
+def _aligned_inputs(avatar: Avatar, frame, cams, target: Tensor, iterations: int, expressions: bool):
+    """The frame and cameras after test-time alignment (:func:`.align.align_frames`)."""
+    from ..camera import Cameras
+    from .align import align_frames
+
+    a = align_frames(avatar, frame, cams, target.to(torch.float32), iterations=iterations, expressions=expressions)
+    frame = type(frame)(torch.from_numpy(a.expression), frame.joint_rotations, frame.eyelids)
+    return frame, Cameras(cams.K, torch.from_numpy(a.R), torch.from_numpy(a.t), cams.width, cams.height)
+
+
 def evaluate(bundle_or_avatar, data_dir, split: str = "test", batch: int = 4, contact_sheet=None, report=None, *,
-             backend: str | None = None, sheet_frames: int = SHEET_FRAMES) -> dict:
+             backend: str | None = None, sheet_frames: int = SHEET_FRAMES, align: int = 0,
+             align_expressions: bool = False) -> dict:
     """Render every frame of ``split`` of the dataset at ``data_dir`` and score it against the masked ground truth.
 
     ``bundle_or_avatar``: a bundle path or an :class:`Avatar`. ``batch``: frames rendered per call. Writes the
@@ -131,6 +151,11 @@ def evaluate(bundle_or_avatar, data_dir, split: str = "test", batch: int = 4, co
     reason} and the reason is logged and added to "notes". With ``report`` also "report" (its path); in the file
     itself every path is relative to the report's folder or a name alone (:func:`relative_paths`).
 
+    ``align``: that many steps of test-time alignment (:mod:`.align`: each frame's head pose, and its expressions
+    with ``align_expressions``, refined against its own image with this avatar) before scoring; the scores without
+    it are kept under "unaligned" ({"psnr", "ssim", "psnr_head"}, and "psnr_head_unaligned" per frame) and the
+    result says "aligned": {"iterations", "expressions"}. 0 (the default) scores the dataset's tracking as it is.
+
     Raises DatasetError when the dataset is malformed, does not animate this avatar (other expression or joint
     names) or has no frame in ``split``; BundleError for an unreadable bundle; ValueError for a bad argument."""
     from ..bundle import read_bundle
@@ -141,6 +166,8 @@ def evaluate(bundle_or_avatar, data_dir, split: str = "test", batch: int = 4, co
     t_start = time.perf_counter()
     if batch < 1:
         raise OptionError(f"must be at least 1, got {batch}", field="batch")
+    if align < 0:
+        raise OptionError(f"must be at least 0, got {align}", field="align")
     if isinstance(bundle_or_avatar, Avatar):
         avatar, bundle = bundle_or_avatar, None
     else:
@@ -166,13 +193,17 @@ def evaluate(bundle_or_avatar, data_dir, split: str = "test", batch: int = 4, co
         picks = np.linspace(0, indices.size - 1, num=min(max(sheet_frames, 1), indices.size))
         want = {int(indices[int(round(p))]) for p in picks}
     sheet: list[tuple[int, np.ndarray, np.ndarray, float]] = []
-    per_frame = []
+    per_frame, unaligned_frames = [], []
     for start in range(0, indices.size, batch):
         chunk = indices[start:start + batch]
         frame, cams = frame_inputs(avatar, ds.tracking, chunk)
+        gt, mask = targets(ds, chunk)
+        unaligned = None
+        if align:
+            unaligned = _score(renderer.render(frame, cams, background=background).rgb, gt, mask)
+            frame, cams = _aligned_inputs(avatar, frame, cams, gt, align, align_expressions)
         out = renderer.render(frame, cams, background=background)
         pred = out.rgb.detach().to("cpu", torch.float64).clamp(0.0, 1.0)
-        gt, mask = targets(ds, chunk)
         gt, mask = gt.to(torch.float64), mask.to(torch.float64)
         ssims = ssim(pred, gt, reduction="none")
         lp = lpips_fn(pred, gt) if lpips_fn is not None else None
@@ -180,6 +211,9 @@ def evaluate(bundle_or_avatar, data_dir, split: str = "test", batch: int = 4, co
             rec = {"index": int(i), "psnr": psnr(pred[k], gt[k]), "ssim": float(ssims[k]),
                    "psnr_head": psnr_masked(pred[k], gt[k], mask[k]),
                    "lpips": float(lp[k]) if lp is not None else None}
+            if unaligned is not None:
+                rec["psnr_head_unaligned"] = unaligned["psnr_head"][k]
+                unaligned_frames.append({key: unaligned[key][k] for key in unaligned})
             per_frame.append(rec)
             if i in want:
                 sheet.append((int(i), pred[k].numpy(), gt[k].numpy(), rec["psnr"]))
@@ -199,6 +233,12 @@ def evaluate(bundle_or_avatar, data_dir, split: str = "test", batch: int = 4, co
         "notes": notes,
         "per_frame": per_frame,
     }
+    if align:
+        result["aligned"] = {"iterations": align, "expressions": align_expressions}
+        result["unaligned"] = {key: _mean(r[key] for r in unaligned_frames) for key in ("psnr", "ssim", "psnr_head")}
+        notes.append("aligned: each frame's head pose%s refined against its own image with this avatar before "
+                     "scoring (test-time alignment); the dataset's tracking as it is scores \"unaligned\""
+                     % (" and expressions" if align_expressions else ""))
     if contact_sheet is not None:
         try:
             result["contact_sheet"] = str(write_contact_sheet(sheet, contact_sheet))

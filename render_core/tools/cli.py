@@ -9,10 +9,11 @@ import math
 import sys
 from pathlib import Path
 
-from ..avatar import RASTER_MODES
+from ..avatar import PRECISIONS, RASTER_MODES
 from ..errors import BlendsplatError
 
 log = logging.getLogger("blendsplat")
+BUNDLE_PRECISIONS = tuple(PRECISIONS)  # blendshape storage: fp32, fp16, int8
 
 
 def finite(obj):
@@ -478,6 +479,14 @@ def cmd_train(args: argparse.Namespace) -> int:
         preset = preset.with_(gaussians=args.gaussians, mouth=max(2, min(preset.mouth, args.gaussians // 10)),
                               max_gaussians=max(args.gaussians, preset.max_gaussians * args.gaussians
                                                 // preset.gaussians))
+    if args.prune_at and not args.prune:
+        from ..errors import OptionError
+
+        raise OptionError("--prune-at needs --prune FRACTION", field="prune_at")
+    if args.prune:
+        if args.iterations:  # the default pruning iterations follow the run's length
+            preset = preset.with_(iterations=args.iterations)
+        preset = preset.with_pruning(args.prune, args.prune_at)
     with _Bar("train", "it") as bar:
         def progress(event) -> None:  # iteration, loss and PSNR; tqdm gives the ETA
             bar(event.iteration, event.total, loss=f"{event.losses['loss']:.4f}", psnr=f"{event.psnr:.2f}")
@@ -494,7 +503,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     from ..evaluation.report import evaluate
 
     r = evaluate(args.bundle, args.data, split=args.split, batch=args.batch, contact_sheet=args.contact_sheet,
-                 report=args.report)
+                 report=args.report, align=args.align, align_expressions=args.align_expressions)
     if args.json:
         _emit(r)
         return 0
@@ -602,9 +611,10 @@ def _add_bundle_commands(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--sh-degree", type=int, default=3, choices=range(4))
     s.add_argument("--mouth", type=int, default=None, help="mouth Gaussians (default gaussians // 8)")
-    s.add_argument("--precision", choices=("fp32", "fp16"), default="fp16",
+    s.add_argument("--precision", choices=BUNDLE_PRECISIONS, default="fp16",
                    help="storage of the blendshape pairs and pose correctives (default fp16, as production bundles; "
-                        "the neutral and mouth Gaussians stay fp32)")
+                        "int8: pair values quantised, with float32 scales, and fp16 pose correctives; the neutral and "
+                        "mouth Gaussians stay fp32)")
     s.add_argument("--raster-mode", choices=RASTER_MODES, default="classic")
     s.add_argument("--local", action="store_true",
                    help="blendshapes with compact support, as a face model's (zero pairs are not stored); "
@@ -621,7 +631,7 @@ def _add_bundle_commands(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--opacity", type=float, default=0.1, help="initial opacity (training: 0.1; a demo: 0.95)")
     s.add_argument("--albedo", choices=("skin", "demo"), default="skin",
                    help="skin: one tone (training starts there); demo: features and baked light, to look at")
-    s.add_argument("--precision", choices=("fp32", "fp16"), default="fp16")
+    s.add_argument("--precision", choices=BUNDLE_PRECISIONS, default="fp16")
     s.add_argument("--seed", type=int, default=0)
     s.set_defaults(fn=cmd_bundle_init)
     s = bsub.add_parser("inspect", help="print a bundle's manifest (schema, face model, counts, names, precision, "
@@ -636,7 +646,8 @@ def _add_bundle_commands(sub: argparse._SubParsersAction) -> None:
                                         "blendshapes in the renderer's layout, loaded without a repack")
     s.add_argument("file", type=Path, help="the bundle to read (fully verified first)")
     s.add_argument("--out", required=True, type=Path)
-    s.add_argument("--precision", choices=("fp32", "fp16"), default=None, help="default: the input's")
+    s.add_argument("--precision", choices=BUNDLE_PRECISIONS, default=None,
+                   help="default: the input's (int8: schema 2 only)")
     s.add_argument("--schema", type=int, choices=(1, 2), default=2, help="schema version to write (default 2)")
     s.set_defaults(fn=cmd_bundle_convert)
     s = bsub.add_parser("build-demo", help="build the trained demo avatar the package ships (the synthetic video of "
@@ -761,6 +772,31 @@ def _add_data_commands(sub: argparse._SubParsersAction) -> argparse._SubParsersA
     return dsub
 
 
+def _prune_fraction(text: str) -> float:
+    """``train --prune``: a fraction in [0, 1), or off / on (on: 0.5)."""
+    named = {"off": 0.0, "on": 0.5}
+    if text.lower() in named:
+        return named[text.lower()]
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a fraction, off or on, got {text!r}") from None
+    if not 0.0 <= value < 1.0:
+        raise argparse.ArgumentTypeError(f"must be in [0, 1), got {value}")
+    return value
+
+
+def _iterations(text: str) -> tuple[int, ...]:
+    """``train --prune-at``: comma-separated positive iterations."""
+    try:
+        out = tuple(int(x) for x in text.split(",") if x.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected iterations like 2100,2400, got {text!r}") from None
+    if not out or min(out) < 1:
+        raise argparse.ArgumentTypeError(f"expected positive iterations, got {text!r}")
+    return out
+
+
 def _add_train_command(sub: argparse._SubParsersAction) -> None:
     """`train`."""
     t = sub.add_parser("train", help="learn a Gaussian blendshape avatar from a tracked video (portable format)")
@@ -775,6 +811,13 @@ def _add_train_command(sub: argparse._SubParsersAction) -> None:
     t.add_argument("--gaussians", type=int, default=None, help="override the preset's initial face Gaussians")
     t.add_argument("--consistency", choices=("all", "positions", "none", "frozen"), default=None,
                    help="blendshape consistency (Eq. 2) and the paper's ablations (default: the preset's, all)")
+    t.add_argument("--prune", type=_prune_fraction, default=0.0, metavar="FRACTION",
+                   help="prune by contribution: remove this fraction of the face Gaussians (those with the least "
+                        "blending weight on the training frames) after densification, then fine-tune; 0 or off: "
+                        "no pruning (the default)")
+    t.add_argument("--prune-at", type=_iterations, default=None, metavar="IT[,IT...]",
+                   help="the pruning iterations (default: one densification interval after densification ends, "
+                        "and 40%% of the way from there to the end)")
     t.add_argument("--seed", type=int, default=0)
     t.add_argument("--quiet", action="store_true", help="no progress bar")
     t.set_defaults(fn=cmd_train)
@@ -790,6 +833,11 @@ def _add_eval_command(sub: argparse._SubParsersAction) -> None:
     e.add_argument("--batch", type=int, default=4)
     e.add_argument("--report", type=Path, default=None, help="also write the report JSON here")
     e.add_argument("--contact-sheet", type=Path, default=None, help="prediction | ground truth PNG")
+    e.add_argument("--align", type=int, default=0, metavar="STEPS",
+                   help="test-time alignment: refine each frame's head pose against its image with the avatar for "
+                        "STEPS steps before scoring (the unaligned scores are reported too; default 0: off)")
+    e.add_argument("--align-expressions", action="store_true",
+                   help="with --align: refine the expressions too")
     e.add_argument("--json", action="store_true")
     e.set_defaults(fn=cmd_eval)
 
@@ -830,9 +878,9 @@ def _add_bench_commands(sub: argparse._SubParsersAction) -> argparse._SubParsers
                         "(vs_reference; slow: tens of seconds a frame at 64k Gaussians; default 0: skipped)")
     b.add_argument("--threads", type=int, default=0, help="native threads (0: all)")
     b.add_argument("--sh-degree", type=int, default=3, choices=range(4))
-    b.add_argument("--precision", choices=("fp32", "fp16", "bf16"), default="fp16",
-                   help="blendshape storage of the synthetic avatar (production bundles are fp16; bf16: the cuda "
-                        "backend's GPU storage only)")
+    b.add_argument("--precision", choices=(*BUNDLE_PRECISIONS, "bf16"), default="fp16",
+                   help="blendshape storage of the synthetic avatar (production bundles are fp16; int8: quantised "
+                        "pairs, read as they are by the native blend; bf16: the cuda backend's GPU storage only)")
     b.add_argument("--seed", type=int, default=0)
     b.add_argument("--bundle", type=Path, default=None, help="benchmark this bundle instead of a synthetic one")
     b.add_argument("--layout", choices=("dense", "sparse"), default="dense",
