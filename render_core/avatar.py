@@ -2,8 +2,8 @@
 
 An :class:`Avatar` holds the neutral Gaussians B0, K expression deltas dB_k for all five properties, per-Gaussian
 LBS weights over a named joint tree, optional pose correctives and eyelid offsets, and the mouth-interior Gaussians
-(upper group bound to the skull's joint, lower group to the jaw). Tensors may be stored in fp16; every compute
-path casts to float32.
+(upper group bound to the skull's joint, lower group to the jaw). Tensors may be stored in fp16, and the deltas in
+int8 with float32 scales (:mod:`render_core.packed`); every compute path casts to float32.
 """
 
 from __future__ import annotations
@@ -20,6 +20,8 @@ from .packed import SparseDeltas
 
 RasterMode = Literal["classic", "antialiased"]
 RASTER_MODES: tuple[str, ...] = ("classic", "antialiased")
+# Storage of the blendshape deltas (Avatar.precision, Avatar.with_precision): the dtype of the stored values.
+PRECISIONS: dict[str, torch.dtype] = {"fp32": torch.float32, "fp16": torch.float16, "int8": torch.int8}
 
 
 def check_raster_mode(mode: str) -> None:
@@ -92,9 +94,10 @@ class Avatar:
 
     @property
     def precision(self) -> str:
-        """Storage of the blendshape data (deltas, pose correctives, eyelids): "fp16" or "fp32"."""
+        """Storage of the blendshape deltas: "fp32", "fp16" or "int8" (:data:`PRECISIONS`; with int8 deltas the
+        pose correctives and eyelid offsets are fp16)."""
         dtype = self.deltas.dtype if isinstance(self.deltas, SparseDeltas) else self.deltas.means.dtype
-        return "fp16" if dtype == torch.float16 else "fp32"
+        return {torch.float16: "fp16", torch.int8: "int8"}.get(dtype, "fp32")
 
     def dense_deltas(self) -> Gaussians:
         """The deltas as dense [K, N, ...] Gaussians (built from sparse deltas: K N (11 + 3C) values)."""
@@ -108,33 +111,46 @@ class Avatar:
         return SparseDeltas.from_dense(self.deltas, dtype)
 
     def _map_deltas(self, dtype: torch.dtype | None, device: torch.device | str | None = None):
+        """The deltas moved to ``device`` and stored as ``dtype`` (int8: sparse and quantised; int8 deltas cast to
+        a float dtype are dequantised)."""
         if isinstance(self.deltas, SparseDeltas):
             return self.deltas.to(device, dtype)
+        if dtype == torch.int8:
+            return SparseDeltas.from_dense(self.deltas, torch.int8).to(device)
         return self.deltas.map(lambda t: t.to(device=device, dtype=dtype or t.dtype))
 
     def with_precision(self, precision: str) -> Avatar:
         """A copy whose blendshape data (deltas, pose correctives, eyelid offsets: the bulk of an avatar, read
         every frame) is stored in ``precision``; the neutral and mouth Gaussians stay float32 (positions need it:
-        fp16 moves a point 0.1 m from the origin by up to 30 um, a tenth of a pixel at 512 px)."""
-        if precision not in ("fp32", "fp16"):
-            raise OptionError(f"must be fp32 or fp16, got {precision!r}", field="precision")
-        store = torch.float16 if precision == "fp16" else torch.float32
+        fp16 moves a point 0.1 m from the origin by up to 30 um, a tenth of a pixel at 512 px).
 
-        def cast(t: Tensor | None) -> Tensor | None:
-            return None if t is None else t.to(store)
+        "int8" quantises the deltas (sparse pairs, :meth:`~render_core.packed.Pairs.quantize`: |error| <= half a
+        step of each value's scale) and stores the pose correctives and eyelid offsets in fp16."""
+        if precision not in PRECISIONS:
+            raise OptionError(f"must be one of {', '.join(PRECISIONS)}, got {precision!r}", field="precision")
+        store = PRECISIONS[precision]
+        side = torch.float16 if store == torch.int8 else store  # pose correctives and eyelids
+
+        def cast(t: Tensor | None, dtype: torch.dtype = torch.float32) -> Tensor | None:
+            return None if t is None else t.to(dtype)
 
         return replace(
-            self.to(torch.float32),
+            self,
+            neutral=self.neutral.map(cast),
+            mouth=self.mouth.map(cast),
+            lbs_weights=cast(self.lbs_weights),
+            joint_positions=cast(self.joint_positions),
             deltas=self._map_deltas(store),
-            pose_correctives=cast(self.pose_correctives),
-            eyelid_offsets=cast(self.eyelid_offsets),
+            pose_correctives=cast(self.pose_correctives, side),
+            eyelid_offsets=cast(self.eyelid_offsets, side),
         )
 
     def joint_index(self, name: str) -> int:
         return self.joint_names.index(name)
 
     def to(self, dtype: torch.dtype | None = None, device: torch.device | str | None = None) -> Avatar:
-        """A copy with floating-point tensors cast to ``dtype`` and everything moved to ``device``."""
+        """A copy with floating-point tensors cast to ``dtype`` (int8 deltas dequantised to it) and everything
+        moved to ``device``."""
 
         def cast(t: Tensor | None) -> Tensor | None:
             if t is None:

@@ -19,8 +19,15 @@ Gaussians, C = (sh_degree+1)^2, R = 16 + ceil16(3C), Pg and Pc stored geometry a
     mouth_group [M] I64   lbs_weights [N, J] F32   joint_positions [J, 3] F32
     pose_correctives [N, 3, ceil16(9 (J-1))]       eyelid_offsets [N, 2, 3] F32   (both optional)
 
-The pair values and pose correctives are all F16 or all F32 (manifest ``precision``; default fp16). Pairs are
-sorted by Gaussian, then blendshape, with no duplicates. Schema 1 stored every pair densely::
+and, with precision int8 only (the scales of the quantised values and the positions' second byte, packed.py)::
+
+    deltas.geometry.scale [K, 16] F32              deltas.color.scale [K, ceil16(3C)] F32
+    deltas.geometry.position_residual [Pg * 3 + 13] I8
+
+The manifest's ``precision`` names the storage of the pair values: F32 ("fp32"), F16 ("fp16", the default) or I8
+("int8": symmetric int8 times float32 scales, finite and not negative; schema 2 only). The pose correctives are
+stored in the same precision, F16 for int8. Pairs are sorted by Gaussian, then blendshape, with no duplicates.
+Schema 1 stored every pair densely::
 
     neutral.means [N, 3]  neutral.quats [N, 4] (wxyz)  neutral.log_scales [N, 3]  neutral.opacity_logits [N]
     neutral.sh [N, C, 3]                 deltas.<same five> [K, N, ...]       mouth.<same five> [M, ...]
@@ -79,7 +86,7 @@ from .errors import BlendsplatError, BundleError
 CURRENT_SCHEMA_VERSION = 2
 FORMAT = "blendsplat-avatar"
 MANIFEST_KEY = "blendsplat.manifest"
-PRECISIONS: tuple[str, ...] = ("fp32", "fp16")
+PRECISIONS: tuple[str, ...] = ("fp32", "fp16", "int8")
 UPGRADERS: dict[int, Callable[[dict[str, Any]], dict[str, Any]]] = {
     1: dict,  # 1 -> 2 changed the tensor layout only (read by the stored version), not the manifest's keys
 }
@@ -97,10 +104,12 @@ _GAUSSIAN_TAILS: dict[str, tuple[str, ...]] = {
 _GROUP_LEADS = {"neutral": ("N",), "deltas": ("K", "N"), "mouth": ("M",)}
 _OPTIONAL = ("pose_correctives", "eyelid_offsets")
 _DTYPES: dict[str, torch.dtype] = {"F32": torch.float32, "F16": torch.float16, "I64": torch.int64,
-                                   "I32": torch.int32, "U16": torch.uint16}
+                                   "I32": torch.int32, "U16": torch.uint16, "I8": torch.int8}
 _DTYPE_NAMES = {v: k for k, v in _DTYPES.items()}
-_ITEMSIZE = {"F32": 4, "F16": 2, "I64": 8, "I32": 4, "U16": 2}
-_PRECISION_DTYPE = {"fp32": "F32", "fp16": "F16"}
+_ITEMSIZE = {"F32": 4, "F16": 2, "I64": 8, "I32": 4, "U16": 2, "I8": 1}
+_PRECISION_DTYPE = {"fp32": "F32", "fp16": "F16", "int8": "I8"}  # the pair values
+_SIDE_DTYPE = {"fp32": "F32", "fp16": "F16", "int8": "F16"}  # pose correctives (schema 1: eyelids too)
+_SCALES = ("scale", "position_residual")  # the tensors of an int8 table besides row_ptr, col and values
 # Symbolic shape of every tensor a schema-1 bundle may hold (N, K, J, M, C and literals).
 _SHAPES_V1: dict[str, tuple[str, ...]] = {
     **{f"{group}.{key}": (*lead, *_GAUSSIAN_TAILS[key]) for group, lead in _GROUP_LEADS.items()
@@ -117,16 +126,18 @@ _SHAPES_V1: dict[str, tuple[str, ...]] = {
 
 
 def write_bundle(
-    avatar: Avatar, path: str | os.PathLike, precision: Literal["fp32", "fp16"] = "fp16", *,
+    avatar: Avatar, path: str | os.PathLike, precision: Literal["fp32", "fp16", "int8"] = "fp16", *,
     schema_version: int = CURRENT_SCHEMA_VERSION,
 ) -> dict[str, Any]:
     """Write ``avatar`` to ``path`` as one bundle file and return its manifest.
 
     ``precision`` is the storage of the blendshape data (delta pairs, pose correctives; schema 1 also eyelid
-    offsets): float16 by default, or float32; the neutral and mouth Gaussians, ``lbs_weights`` and
-    ``joint_positions`` stay float32. Only the (Gaussian, blendshape) pairs with a non-zero value (after the cast)
-    are stored. ``schema_version`` 1 writes the old dense layout (for tools that read only that; loading it costs
-    a repack). ``provenance`` gains ``created_at`` (ISO 8601, UTC) and ``blendsplat_version`` where absent.
+    offsets): float16 by default, float32, or (schema 2 only) int8 pair values with float32 scales
+    (:meth:`render_core.packed.Pairs.quantize`) and float16 pose correctives; the neutral and mouth Gaussians,
+    ``lbs_weights`` and ``joint_positions`` stay float32. Only the (Gaussian, blendshape) pairs with a non-zero
+    value (after the cast) are stored. ``schema_version`` 1 writes the old dense layout (for tools that read only
+    that; loading it costs a repack). ``provenance`` gains ``created_at`` (ISO 8601, UTC) and
+    ``blendsplat_version`` where absent.
 
     The write is atomic: the file is written to a temporary name in the same folder, fsynced and renamed over
     ``path``, so a crash leaves either the old file or the new one. An invalid avatar (bad shapes, non-finite
@@ -141,6 +152,7 @@ def write_bundle(
         raise BundleError(f"must be one of {PRECISIONS}, got {precision!r}", field="precision")
     if schema_version not in (1, 2):
         raise BundleError(f"writes schema 1 or 2, got {schema_version!r}", field="schema_version")
+    _check_precision(precision, schema_version)
     _validate_avatar(avatar)
     tensors = (_tensors_v1 if schema_version == 1 else _tensors_v2)(avatar, precision)
     manifest = _build_manifest(avatar, precision, tensors, schema_version)
@@ -156,7 +168,7 @@ def write_bundle(
 
 def _tensors_v2(avatar: Avatar, precision: str) -> dict[str, Tensor]:
     """The schema-2 tensors (the packed layout), contiguous on the CPU; refuses non-finite values."""
-    store = _DTYPES[_PRECISION_DTYPE[precision]]
+    store, side = _DTYPES[_PRECISION_DTYPE[precision]], _DTYPES[_SIDE_DTYPE[precision]]
     for group in ("neutral", "mouth"):
         for key, t in getattr(avatar, group).tensors().items():
             _cast_finite(f"{group}.{key}", t, torch.float32)
@@ -173,12 +185,12 @@ def _tensors_v2(avatar: Avatar, precision: str) -> dict[str, Tensor]:
         if bad:  # finite before the cast: values beyond the storage's range; name the dense tensor where known
             field = next((f"deltas.{k}" for k, d in (dense.tensors().items() if dense is not None else ())
                           if _count_nonfinite(d.detach().to(store))), f"deltas.{key}")
-            raise BundleError(f"{bad} values overflow {store} (|x| > {torch.finfo(store).max:g}); write with "
+            raise BundleError(f"{bad} values overflow {t.dtype} (|x| > {torch.finfo(t.dtype).max:g}); write with "
                               "precision='fp32'", field=field)
         out[f"deltas.{key}"] = t.contiguous()
     if avatar.pose_correctives is not None:
-        pc = _cast_finite("pose_correctives", avatar.pose_correctives, store)
-        out["pose_correctives"] = packed.pack_correctives(pc, store)
+        pc = _cast_finite("pose_correctives", avatar.pose_correctives, side)
+        out["pose_correctives"] = packed.pack_correctives(pc, side)
     if avatar.eyelid_offsets is not None:
         out["eyelid_offsets"] = packed.pack_eyelids(_cast_finite("eyelid_offsets", avatar.eyelid_offsets,
                                                                   torch.float32))
@@ -650,7 +662,8 @@ def _avatar_from_v2(manifest: dict[str, Any], tensors: dict[str, Tensor]) -> Ava
 
     def pairs(part: str, length: int) -> packed.Pairs:
         return packed.Pairs(tensors[f"deltas.{part}.row_ptr"], tensors[f"deltas.{part}.col"],
-                            tensors[f"deltas.{part}.values"], length)
+                            tensors[f"deltas.{part}.values"], length,
+                            *(tensors.get(f"deltas.{part}.{name}") for name in _SCALES))
 
     deltas = packed.SparseDeltas(pairs("geometry", packed.GEOMETRY_LENGTH), pairs("color", 3 * c), k, n, c)
     pc, eyelids = tensors.get("pose_correctives"), tensors.get("eyelid_offsets")
@@ -788,6 +801,13 @@ def _resolve(symbols: tuple[str, ...], counts: dict[str, int], sh_degree: int) -
     return tuple(dims[s] if s in dims else int(s) for s in symbols)
 
 
+def _check_precision(precision: str, version: int) -> None:
+    """BundleError (field ``precision``) unless schema ``version`` stores ``precision``: int8 is schema 2's only."""
+    if precision == "int8" and version < 2:
+        raise BundleError(f"int8 blendshapes are stored by schema 2 and later only, not schema {version}; write "
+                          "schema 2 or precision fp16", field="precision")
+
+
 def _stored_dtype(name: str, precision: str) -> str:
     """Schema 1: blendshape data (deltas, correctives, eyelids) in the bundle's precision; everything else fixed."""
     if name == "mouth_group":
@@ -805,14 +825,15 @@ def _expected_v1(m: dict[str, Any], table: Mapping[str, tuple[str, tuple[int, ..
 
 def _expected_v2(m: dict[str, Any], table: Mapping[str, tuple[str, tuple[int, ...]]]):
     counts, c = m["counts"], (m["sh_degree"] + 1) ** 2
-    n, j, mouth = counts["gaussians"], counts["joints"], counts["mouth"]
-    value = _PRECISION_DTYPE[m["precision"]]
+    n, j, mouth, k = counts["gaussians"], counts["joints"], counts["mouth"], counts["blendshapes"]
+    value, quantized = _PRECISION_DTYPE[m["precision"]], m["precision"] == "int8"
     out = {
         "gaussians": ("F32", (n + mouth, packed.row_width(c)), "[N + M, 16 + ceil16(3C)]"),
         "mouth_group": ("I64", (mouth,), "[M]"),
         "lbs_weights": ("F32", (n, j), "[N, J]"),
         "joint_positions": ("F32", (j, 3), "[J, 3]"),
-        "pose_correctives": (value, (n, 3, packed.corrective_width(j)), "[N, 3, ceil16(9(J-1))]"),
+        "pose_correctives": (_SIDE_DTYPE[m["precision"]], (n, 3, packed.corrective_width(j)),
+                             "[N, 3, ceil16(9(J-1))]"),
         "eyelid_offsets": ("F32", (n, 2, 3), "[N, 2, 3]"),
     }
     for part, length in (("geometry", packed.GEOMETRY_LENGTH), ("color", 3 * c)):
@@ -823,6 +844,12 @@ def _expected_v2(m: dict[str, Any], table: Mapping[str, tuple[str, tuple[int, ..
         out[f"deltas.{part}.col"] = ("U16", (pairs,), "[P]")
         out[f"deltas.{part}.values"] = (value, (pairs * length + pad,),
                                         f"[P * {length} + {pad}] with P = {pairs} pairs (the col tensor)")
+        if quantized:
+            out[f"deltas.{part}.scale"] = ("F32", (k, length + pad), f"[K, {length + pad}]")
+            if part == "geometry":
+                residual = pairs * packed.POSITION_COLUMNS + packed.RESIDUAL_PADDING
+                out[f"deltas.{part}.position_residual"] = ("I8", (residual,),
+                                                           f"[P * 3 + 13] with P = {pairs} pairs (the col tensor)")
     return out
 
 
@@ -833,6 +860,7 @@ def _check_tensor_table(m: dict[str, Any], table: dict[str, tuple[str, tuple[int
     """Check the tensors (name -> (dtype, shape)) against those of the schema ``version``, the precision, the
     counts and the manifest's ``tensors`` table."""
     precision = m["precision"]
+    _check_precision(precision, version)
     expected = _SCHEMAS[version](m, table)
     for name in sorted(table):
         if name not in expected:

@@ -41,8 +41,8 @@ FUSIONS = ("off", "graph", "compile")
 class DeviceAvatar:
     """An avatar resident on one device for the torch pipeline (the cuda backend's; any device works).
 
-    The blendshapes are stored in ``precision`` ("fp32", "fp16" or "bf16"; default the avatar's) in one of two
-    layouts:
+    The blendshapes are stored in ``precision`` ("fp32", "fp16" or "bf16"; default the avatar's, and fp32 for an
+    int8 avatar: its dequantised values exactly; there is no int8 path on the GPU) in one of two layouts:
 
     - ``"dense"`` (the default): one ``[K, N x (11 + 3C)]`` matrix, geometry then SH per Gaussian, so Eq. 1 for B
       frames is one matrix product (cuBLAS, float32 accumulation) that streams the matrix once whatever B is: at
@@ -58,7 +58,7 @@ class DeviceAvatar:
 
     def __init__(self, avatar: Avatar, device: torch.device | str, precision: str | None = None,
                  layout: str = "dense"):
-        precision = precision or avatar.precision
+        precision = precision or (avatar.precision if avatar.precision in STORAGE_DTYPES else "fp32")
         if precision not in STORAGE_DTYPES:
             raise OptionError(f"must be one of {', '.join(STORAGE_DTYPES)}, got {precision!r}", field="precision")
         if layout not in LAYOUTS:
@@ -120,7 +120,8 @@ def _no_pairs(deltas: SparseDeltas, device: torch.device) -> SparseDeltas:
     def empty(p: Pairs) -> Pairs:
         return Pairs(torch.zeros(deltas.num_gaussians + 1, dtype=torch.int32, device=device),
                      torch.zeros(0, dtype=torch.uint16, device=device),
-                     torch.zeros(p.padding, dtype=p.values.dtype, device=device), p.length)
+                     torch.zeros(p.padding, dtype=torch.float32 if p.quantized else p.values.dtype, device=device),
+                     p.length)
 
     return SparseDeltas(empty(deltas.geometry), empty(deltas.color), deltas.num_expressions, deltas.num_gaussians,
                         deltas.sh_coeffs)
@@ -202,8 +203,9 @@ class _Clock:
 class AvatarRenderer:
     """Renders frames of one avatar with one backend (default: native where built).
 
-    ``precision`` is the blendshape storage: the native backend's ("fp32" or "fp16") or the cuda backend's ("fp32",
-    "fp16" or "bf16"); default the avatar's own. ``simd`` forces a native SIMD path (default: ``BLENDSPLAT_SIMD``
+    ``precision`` is the blendshape storage: the native backend's ("fp32", "fp16" or "int8") or the cuda backend's
+    ("fp32", "fp16" or "bf16"); default the avatar's own (the cuda and reference backends render an int8 avatar's
+    dequantised values). ``simd`` forces a native SIMD path (default: ``BLENDSPLAT_SIMD``
     or the fastest); ``threads`` 0 uses all. The cuda backend's outputs stay on the GPU.
 
     The cuda backend's ``layout`` is :class:`DeviceAvatar`'s and ``fuse`` how blend + skinning + shading run
@@ -235,7 +237,8 @@ class AvatarRenderer:
             self.device_avatar = DeviceAvatar(avatar, gsplat_backend.device(), precision, layout)
             if self.device_avatar.device.type != "cuda":
                 self.fuse = "off"  # graphs are CUDA's (the CPU emulation of the cuda path runs eagerly)
-        # The reference path computes in float32 whatever the storage; cast fp16 avatars once, not per frame.
+        # The reference path computes in float32 whatever the storage; cast fp16 (dequantise int8) avatars once,
+        # not per frame.
         needs_cast = self.backend == "reference" and avatar.precision != "fp32"
         self._compute_avatar = avatar.with_precision("fp32") if needs_cast else avatar
 

@@ -588,7 +588,7 @@ def test_write_refuses_fp16_overflow_and_invalid_avatars(avatar, tmp_path, schem
         write_bundle(replace(avatar, default_camera={}), tmp_path / "b.bsplat", schema_version=schema)
     assert info.value.field == "default_camera"
     with pytest.raises(BundleError) as info:
-        write_bundle(avatar, tmp_path / "b.bsplat", precision="int8", schema_version=schema)  # type: ignore[arg-type]
+        write_bundle(avatar, tmp_path / "b.bsplat", precision="bf16", schema_version=schema)  # type: ignore[arg-type]
     assert info.value.field == "precision"
     assert not (tmp_path / "b.bsplat").exists()
 

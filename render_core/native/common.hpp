@@ -19,22 +19,33 @@ constexpr int kMaxBatch = 64;  // frames blended together per pass (larger batch
 // Gaussians: geometry pairs of 11 values (added to base columns 0..15) and colour pairs of 3C values (added to
 // columns 16..Dp). Pair rows are packed at stride len and each array ends with ceil16(len) - len spare values, so
 // 16-value loads of the last row stay inside it; lanes past len land in unused columns.
+// int8 values are scaled (packed.py): value[d] = q[d] * scale[k][d], the geometry's columns 0..2 (q[d] + r[j][d] /
+// 256) * scale[k][d] with r the position residuals (3 per pair, 13 spare bytes at the end); scale rows are
+// ceil16(len) floats, zero past len, so the lanes past len get no weight.
 struct PairsView {
     const int32_t* row_ptr = nullptr;  // [n_face + 1]
     const uint16_t* col = nullptr;     // [nnz] blendshape index of each stored pair
     const void* vals = nullptr;        // [nnz * len + ceil16(len) - len]
     int len = 0;
+    const float* scale = nullptr;     // int8: [K, ceil16(len)]
+    const int8_t* residual = nullptr;  // int8 geometry: [nnz * 3 + 13], the positions' second byte
 };
+
+constexpr int kPositionColumns = 3;     // the geometry columns with a residual byte
+constexpr float kResidualStep = 1.0f / 256.0f;  // a residual's unit, in steps of its value
+
+// Storage of the pair values (pc: fp32 with kF32, fp16 otherwise).
+enum class Storage : uint8_t { kF32, kF16, kI8 };
 
 struct AvatarView {
     int n_total = 0;  // face + mouth Gaussians
     int n_face = 0;
     int K = 0, J = 0, C = 0, Dp = 0;
     int P = 0, Ppad = 0;  // pose-corrective features 9 (J - 1), padded to 16
-    bool half = false;    // pair values and pc are fp16 (uint16 bits) instead of fp32
+    Storage storage = Storage::kF32;  // pair values fp32, fp16 (uint16 bits) or int8 (and scales)
     const float* base = nullptr;        // [n_total, Dp]
     PairsView geometry, color;
-    const void* pc = nullptr;           // [n_face, 3, Ppad] pose correctives, or null
+    const void* pc = nullptr;           // [n_face, 3, Ppad] pose correctives (fp32 or fp16 bits), or null
     const float* eyelid = nullptr;      // [n_face, 2, 3] eyelid offsets, or null
     const float* lbs = nullptr;         // [J, n_total] skinning weights (mouth: one-hot on its joint)
     const float* joints = nullptr;      // [J, 3] rest positions

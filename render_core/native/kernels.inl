@@ -5,6 +5,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstring>
+#include <type_traits>
 #include <vector>
 
 #include "common.hpp"
@@ -20,19 +21,48 @@ constexpr int kMaxLanes = 16;
 
 // ------------------------------------------------------------------------------------------------ blend
 
+// Pair values as stored: float, uint16_t (fp16 bits) or int8_t (times their scales: PairsView).
+template <class T>
+constexpr bool kQuantized = std::is_same_v<T, int8_t>;
+
+// The weights of int8 geometry residuals in the lanes of columns d..d + W: 1/256 in the position columns, 0 elsewhere
+// (those lanes load the next pairs' residuals).
+static inline F residual_weights(int d) {
+    const M position = V::lt(V::iota() + V::set1(float(d)), V::set1(float(kPositionColumns)));
+    return V::select(position, V::set1(kResidualStep), V::set1(0.0f));
+}
+
+// int8 pair j's columns d..d + W in steps of their scales, exactly: q, plus residual / 256 in the position columns.
+static inline F pair_steps(const PairsView& p, int j, int d) {
+    const F q = V::load(static_cast<const int8_t*>(p.vals) + size_t(j) * p.len + d);
+    if (p.residual == nullptr || d >= kPositionColumns) return q;
+    return V::fma(V::load(p.residual + size_t(j) * kPositionColumns + d), residual_weights(d), q);
+}
+
+// Values d..d + W of pair j (blendshape k) in float32: as stored, or int8 steps times their scale exactly as
+// packed.py dequantises them (one rounding), so batches render an int8 avatar as its dequantised fp32 twin, bit for
+// bit.
+template <class T>
+static inline F pair_values(const PairsView& p, int j, int k, int d) {
+    if constexpr (kQuantized<T>) {
+        return pair_steps(p, j, d) * V::load(p.scale + size_t(k) * ((p.len + 15) & ~15) + d);
+    } else {
+        return V::load(static_cast<const T*>(p.vals) + size_t(j) * p.len + d);
+    }
+}
+
 // acc[g][d..d + NV W) += sum_j psi[g][col[j]] vals[j][d..] for GB frames g (acc rows DP floats apart): NV vectors
-// of accumulators per frame stay in registers while the pairs stream by.
+// of accumulators per frame stay in registers while the pairs stream by (int8 values dequantised once per pair
+// for the GB frames).
 template <class T, int DP, int GB, int NV>
 static inline void blend_slice(const PairsView& p, int K, const float* psi, int j0, int j1, float* acc, int d) {
-    const T* vals = static_cast<const T*>(p.vals);
     F a[GB][NV];
     for (int g = 0; g < GB; ++g)
         for (int v = 0; v < NV; ++v) a[g][v] = V::load(acc + g * DP + d + v * W);
     for (int j = j0; j < j1; ++j) {
         const int k = p.col[j];
-        const T* row = vals + size_t(j) * p.len + d;
         F x[NV];
-        for (int v = 0; v < NV; ++v) x[v] = V::load(row + v * W);
+        for (int v = 0; v < NV; ++v) x[v] = pair_values<T>(p, j, k, d + v * W);
         for (int g = 0; g < GB; ++g) {
             const F w = V::set1(psi[g * K + k]);
             for (int v = 0; v < NV; ++v) a[g][v] = V::fma(w, x[v], a[g][v]);
@@ -56,12 +86,33 @@ static inline void blend_group(const PairsView& p, int K, const float* psi, int 
     if constexpr (CW % (2 * W) != 0) blend_slice<T, DP, GB, 1>(p, K, psi, j0, j1, acc, d);
 }
 
-// The pairs of face Gaussian n, CW columns wide, added to acc (frame b's columns at acc + b DP).
+// One frame, int8 values: acc[0..CW) += sum_j ws[col[j]] steps[j] (pair_steps), with ws [K, CW] the frame's
+// weighted scales psi[k] scale[k][d] (weighted_scales): per value one conversion and one FMA, as the float paths,
+// from a quarter (of fp32) or half (of fp16) of the bytes, the row's accumulators in registers. Lanes past len
+// have weight 0.
+template <int CW>
+static inline void blend_pairs_ws(const PairsView& p, const float* ws, int j0, int j1, float* acc) {
+    constexpr int NV = CW / W;
+    F a[NV];
+    for (int v = 0; v < NV; ++v) a[v] = V::load(acc + v * W);
+    for (int j = j0; j < j1; ++j) {
+        const float* w = ws + size_t(p.col[j]) * CW;
+#pragma GCC unroll 16
+        for (int v = 0; v < NV; ++v) a[v] = V::fma(V::load(w + v * W), pair_steps(p, j, v * W), a[v]);
+    }
+    for (int v = 0; v < NV; ++v) V::store(acc + v * W, a[v]);
+}
+
+// The pairs of face Gaussian n, CW columns wide, added to acc (frame b's columns at acc + b DP). ws: one int8
+// frame's weighted scales [K, CW] (null: none).
 template <class T, int DP, int CW>
-static inline void blend_pairs(const PairsView& p, int K, const float* psi, int B, int n, float* acc) {
+static inline void blend_pairs(const PairsView& p, int K, const float* psi, const float* ws, int B, int n,
+                               float* acc) {
     const int j0 = p.row_ptr[n], j1 = p.row_ptr[n + 1];
     if (j0 == j1) return;
-    if (B == 1) {  // the whole row's accumulators in registers
+    if constexpr (kQuantized<T>) {
+        if (ws != nullptr) return blend_pairs_ws<CW>(p, ws, j0, j1, acc);
+    } else if (B == 1) {  // the whole row's accumulators in registers
         const T* vals = static_cast<const T*>(p.vals);
         for (int j = j0; j < j1; ++j) {
             const F w = V::set1(psi[p.col[j]]);
@@ -77,13 +128,38 @@ static inline void blend_pairs(const PairsView& p, int K, const float* psi, int 
     for (; b < B; ++b) blend_group<T, DP, CW, 1>(p, K, psi + b * K, j0, j1, acc + b * DP);
 }
 
-template <class T, int DP>
+// Weighted scales of one frame of an int8 avatar, ws [K, DP]: the geometry's psi[k] scale[k][0..16), then the
+// colour's psi[k] scale[k][0..DP - 16) (at ws + 16 K). Made once per blend call (K DP products, against the
+// pairs' K N (11 + 3C) values) when they fit kWeightedScales floats; else null (the batched path, which
+// dequantises each pair instead).
+constexpr size_t kWeightedScales = size_t(1) << 15;  // 128 KB: 512 blendshapes at 3C = 48
+
+template <int DP>
+static const float* weighted_scales(const AvatarView& av, const float* psi) {
+    if (size_t(av.K) * DP > kWeightedScales) return nullptr;
+    static thread_local std::vector<float> ws_tls;
+    std::vector<float>& ws = ws_tls;
+    ws.resize(size_t(av.K) * DP);
+    constexpr int kGeo = 16, kCol = DP - kGeo;
+    float* geo = ws.data();
+    float* col = geo + size_t(av.K) * kGeo;
+    for (int k = 0; k < av.K; ++k) {
+        for (int d = 0; d < kGeo; ++d) geo[k * kGeo + d] = psi[k] * av.geometry.scale[k * kGeo + d];
+        for (int d = 0; d < kCol; ++d) col[k * kCol + d] = psi[k] * av.color.scale[k * kCol + d];
+    }
+    return ws.data();
+}
+
+template <class T, class TP, int DP>
 static void blend_t(const AvatarView& av, const float* psi, const float* pose_feat, const float* eyelids, int B,
                     float* out, int out_stride, int n0, int n1) {
     constexpr int kGeo = 16;  // geometry columns 0..15 (11 used), then colour columns
     alignas(64) float acc[kMaxBatch * DP];
-    const T* pc = static_cast<const T*>(av.pc);
+    const TP* pc = static_cast<const TP*>(av.pc);
     const int sh = 3 * av.C;
+    const float* ws = nullptr;
+    if constexpr (kQuantized<T>) ws = B == 1 ? weighted_scales<DP>(av, psi) : nullptr;
+    const float* ws_color = ws != nullptr ? ws + size_t(av.K) * kGeo : nullptr;
     bool any_pose[kMaxBatch];
     for (int b = 0; b < B; ++b) {
         any_pose[b] = false;
@@ -93,15 +169,15 @@ static void blend_t(const AvatarView& av, const float* psi, const float* pose_fe
         const float* base = av.base + size_t(n) * DP;
         for (int b = 0; b < B; ++b) std::memcpy(acc + b * DP, base, sizeof(float) * DP);
         if (n < av.n_face) {
-            blend_pairs<T, DP, kGeo>(av.geometry, av.K, psi, B, n, acc);
-            blend_pairs<T, DP, DP - kGeo>(av.color, av.K, psi, B, n, acc + kGeo);
+            blend_pairs<T, DP, kGeo>(av.geometry, av.K, psi, ws, B, n, acc);
+            blend_pairs<T, DP, DP - kGeo>(av.color, av.K, psi, ws_color, B, n, acc + kGeo);
         }
         if (pc != nullptr && n < av.n_face) {
             for (int b = 0; b < B; ++b) {
                 if (!any_pose[b]) continue;
                 const float* f = pose_feat + b * av.Ppad;
                 for (int c = 0; c < 3; ++c) {
-                    const T* row = pc + (size_t(n) * 3 + c) * av.Ppad;
+                    const TP* row = pc + (size_t(n) * 3 + c) * av.Ppad;
                     F s = V::set1(0.0f);
                     for (int p = 0; p < av.Ppad; p += W) s = V::fma(V::load(f + p), V::load(row + p), s);
                     acc[b * DP + c] += V::hsum(s);
@@ -128,22 +204,23 @@ static void blend_t(const AvatarView& av, const float* psi, const float* pose_fe
     }
 }
 
-template <class T>
+template <class T, class TP>
 static void blend_dp(const AvatarView& av, const float* psi, const float* pf, const float* el, int B, float* out,
                      int stride, int n0, int n1) {
     switch (av.Dp) {
-        case 32: return blend_t<T, 32>(av, psi, pf, el, B, out, stride, n0, n1);
-        case 48: return blend_t<T, 48>(av, psi, pf, el, B, out, stride, n0, n1);
-        default: return blend_t<T, 64>(av, psi, pf, el, B, out, stride, n0, n1);
+        case 32: return blend_t<T, TP, 32>(av, psi, pf, el, B, out, stride, n0, n1);
+        case 48: return blend_t<T, TP, 48>(av, psi, pf, el, B, out, stride, n0, n1);
+        default: return blend_t<T, TP, 64>(av, psi, pf, el, B, out, stride, n0, n1);
     }
 }
 
 static void blend(const AvatarView& av, const float* psi, const float* pf, const float* el, int B, float* out,
                   int stride, int n0, int n1) {
-    if (av.half)
-        blend_dp<uint16_t>(av, psi, pf, el, B, out, stride, n0, n1);
-    else
-        blend_dp<float>(av, psi, pf, el, B, out, stride, n0, n1);
+    switch (av.storage) {  // pair values, pose correctives
+        case Storage::kF16: return blend_dp<uint16_t, uint16_t>(av, psi, pf, el, B, out, stride, n0, n1);
+        case Storage::kI8: return blend_dp<int8_t, uint16_t>(av, psi, pf, el, B, out, stride, n0, n1);
+        default: return blend_dp<float, float>(av, psi, pf, el, B, out, stride, n0, n1);
+    }
 }
 
 // ------------------------------------------------------------------------------------------------ geometry

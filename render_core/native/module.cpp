@@ -49,6 +49,7 @@ void require_shape(const A& a, std::initializer_list<size_t> shape, const char* 
 
 bool is_f32(const AnyIn& a) { return a.dtype() == nb::dtype<float>(); }
 bool is_u16(const AnyIn& a) { return a.dtype() == nb::dtype<uint16_t>(); }
+bool is_i8(const AnyIn& a) { return a.dtype() == nb::dtype<int8_t>(); }
 
 // One CSR table of blendshape pairs over the n_face face Gaussians (render_core/packed.py, "Pairs").
 bs::PairsView check_pairs(const In<int32_t>& row_ptr, const In<uint16_t>& col, const AnyIn& vals, int n_face, int K,
@@ -68,13 +69,51 @@ bs::PairsView check_pairs(const In<int32_t>& row_ptr, const In<uint16_t>& col, c
     return p;
 }
 
+// Scales of an int8 table, finite and not negative, shaped as expected (any other table: none).
+const float* check_scales(const In<float>& scale, std::initializer_list<size_t> shape, bool quantized,
+                          const std::string& name) {
+    if (!quantized) {
+        require(scale.size() == 0, name + ": only int8 pair values have scales");
+        return nullptr;
+    }
+    require_shape(scale, shape, name.c_str());
+    const float* s = scale.data();
+    for (size_t i = 0; i < scale.size(); ++i)
+        require(std::isfinite(s[i]) && s[i] >= 0.0f, name + ": scales must be finite and not negative");
+    return s;
+}
+
+// The storage of the pair values (geometry and colour alike) and the int8 tables' scales and position residuals.
+bs::Storage check_storage(const AnyIn& geo_vals, const AnyIn& sh_vals, const In<float>& geo_scale,
+                          const In<int8_t>& geo_residual, const In<float>& sh_scale, int K, int C,
+                          bs::AvatarView& v) {
+    const bs::Storage storage = is_u16(geo_vals) ? bs::Storage::kF16
+                                : is_i8(geo_vals) ? bs::Storage::kI8
+                                                  : bs::Storage::kF32;
+    require(is_f32(geo_vals) || storage != bs::Storage::kF32,
+            "geometry.vals: float32, float16 bits (uint16) or int8");
+    require(sh_vals.dtype() == geo_vals.dtype(), "color.vals: same storage as geometry.vals");
+    const bool i8 = storage == bs::Storage::kI8;
+    const size_t nnz = size_t(v.geometry.row_ptr[v.n_face]);
+    v.geometry.scale = check_scales(geo_scale, {size_t(K), 16}, i8, "geometry.scale");
+    require(i8 || geo_residual.size() == 0, "geometry.residual: only int8 pair values have residuals");
+    if (i8) {
+        require_shape(geo_residual, {nnz * bs::kPositionColumns + 13}, "geometry.residual");
+        v.geometry.residual = geo_residual.data();
+    }
+    v.color.scale = check_scales(sh_scale, {size_t(K), size_t(3 * C + 15) / 16 * 16}, i8, "color.scale");
+    return storage;
+}
+
 class NativeAvatar {
    public:
     NativeAvatar(In<float> base, In<int32_t> geo_ptr, In<uint16_t> geo_col, AnyIn geo_vals, In<int32_t> sh_ptr,
                  In<uint16_t> sh_col, AnyIn sh_vals, AnyIn pc, In<float> eyelid, In<float> lbs, In<float> joints,
-                 In<int32_t> parents, int n_face, int K, int C)
+                 In<int32_t> parents, int n_face, int K, int C, In<float> geo_scale, In<int8_t> geo_residual,
+                 In<float> sh_scale)
         : base_(base), geo_ptr_(geo_ptr), sh_ptr_(sh_ptr), geo_col_(geo_col), sh_col_(sh_col), geo_vals_(geo_vals),
-          sh_vals_(sh_vals), pc_(pc), eyelid_(eyelid), lbs_(lbs), joints_(joints), parents_(parents) {
+          sh_vals_(sh_vals), pc_(pc), eyelid_(eyelid), lbs_(lbs), joints_(joints), parents_(parents),
+          geo_scale_(geo_scale), sh_scale_(sh_scale), geo_residual_(geo_residual) {
         require(C == 1 || C == 4 || C == 9 || C == 16, "C must be 1, 4, 9 or 16");
         const int dp = 16 + (3 * C + 15) / 16 * 16;
         require(base.ndim() == 2 && base.shape(1) == size_t(dp), "base: expected [N, 16 + ceil16(3C)]");
@@ -88,19 +127,19 @@ class NativeAvatar {
         for (int j = 0; j < J; ++j)
             require(parents.data()[j] < j && (parents.data()[j] >= 0 || j == 0), "parents must precede children");
         require_shape(lbs, {size_t(J), size_t(n)}, "lbs");
-        const bool half = is_u16(geo_vals);
-        require(is_f32(geo_vals) || half, "geometry.vals: float32 or float16 bits (uint16)");
-        require(half ? is_u16(sh_vals) : is_f32(sh_vals), "color.vals: same storage as geometry.vals");
+        v_.n_face = n_face;
         v_.geometry = check_pairs(geo_ptr, geo_col, geo_vals, n_face, K, 11, "geometry");
         v_.color = check_pairs(sh_ptr, sh_col, sh_vals, n_face, K, 3 * C, "color");
+        const bs::Storage storage = check_storage(geo_vals, sh_vals, geo_scale, geo_residual, sh_scale, K, C, v_);
         const int P = 9 * (J - 1), ppad = ((P + 15) / 16) * 16;
         if (pc.size() > 0) {
-            require(half ? is_u16(pc) : is_f32(pc), "pc: same storage as the pair values");
+            require(storage == bs::Storage::kF32 ? is_f32(pc) : is_u16(pc),
+                    "pc: float32 with float32 pair values, else float16 bits (uint16)");
             require_shape(pc, {size_t(n_face), 3, size_t(ppad)}, "pc");
         }
         if (eyelid.size() > 0) require_shape(eyelid, {size_t(n_face), 2, 3}, "eyelid");
-        v_.n_total = n, v_.n_face = n_face, v_.K = K, v_.J = J, v_.C = C, v_.Dp = dp;
-        v_.P = P, v_.Ppad = ppad, v_.half = half;
+        v_.n_total = n, v_.K = K, v_.J = J, v_.C = C, v_.Dp = dp;
+        v_.P = P, v_.Ppad = ppad, v_.storage = storage;
         v_.base = base.data();
         v_.pc = pc.size() > 0 ? pc.data() : nullptr;
         v_.eyelid = eyelid.size() > 0 ? eyelid.data() : nullptr;
@@ -115,6 +154,8 @@ class NativeAvatar {
     AnyIn geo_vals_, sh_vals_, pc_;
     In<float> eyelid_, lbs_, joints_;
     In<int32_t> parents_;
+    In<float> geo_scale_, sh_scale_;  // int8 pair values' scales (else empty)
+    In<int8_t> geo_residual_;         // int8 geometry's position residuals (else empty)
     bs::AvatarView v_;
 };
 
@@ -395,9 +436,10 @@ NB_MODULE(_native, m) {
     nb::set_leak_warnings(false);
     nb::class_<NativeAvatar>(m, "NativeAvatar")
         .def(nb::init<In<float>, In<int32_t>, In<uint16_t>, AnyIn, In<int32_t>, In<uint16_t>, AnyIn, AnyIn,
-                      In<float>, In<float>, In<float>, In<int32_t>, int, int, int>(),
+                      In<float>, In<float>, In<float>, In<int32_t>, int, int, int, In<float>, In<int8_t>, In<float>>(),
              "base"_a, "geo_ptr"_a, "geo_col"_a, "geo_vals"_a, "sh_ptr"_a, "sh_col"_a, "sh_vals"_a, "pc"_a,
-             "eyelid"_a, "lbs"_a, "joints"_a, "parents"_a, "n_face"_a, "K"_a, "C"_a);
+             "eyelid"_a, "lbs"_a, "joints"_a, "parents"_a, "n_face"_a, "K"_a, "C"_a, "geo_scale"_a,
+             "geo_residual"_a, "sh_scale"_a);
     const unsigned schedule = bs::kRasterDefault;
     m.attr("LAZY_TILES") = unsigned(bs::kLazyTiles);
     m.attr("SQUARE_BLOCKS") = unsigned(bs::kSquareBlocks);

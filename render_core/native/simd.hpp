@@ -61,6 +61,7 @@ struct Scalar {
     static F set1(float x) { return x; }
     static F load(const float* p) { return *p; }
     static F load(const uint16_t* p) { return half_to_float(*p); }
+    static F load(const int8_t* p) { return float(*p); }
     static void store(float* p, F a) { *p = a; }
     static F iota() { return 0.0f; }
     static F fma(F a, F b, F c) { return a * b + c; }
@@ -109,6 +110,9 @@ struct Avx2 {
     static F load(const float* p) { return _mm256_loadu_ps(p); }
     static F load(const uint16_t* p) {
         return _mm256_cvtph_ps(_mm_loadu_si128(reinterpret_cast<const __m128i*>(p)));
+    }
+    static F load(const int8_t* p) {  // 8 bytes
+        return _mm256_cvtepi32_ps(_mm256_cvtepi8_epi32(_mm_loadl_epi64(reinterpret_cast<const __m128i*>(p))));
     }
     static void store(float* p, F a) { _mm256_storeu_ps(p, a.v); }
     static F iota() { return _mm256_setr_ps(0, 1, 2, 3, 4, 5, 6, 7); }
@@ -177,6 +181,9 @@ struct Avx512 {
     static F load(const float* p) { return _mm512_loadu_ps(p); }
     static F load(const uint16_t* p) {
         return _mm512_cvtph_ps(_mm256_loadu_si256(reinterpret_cast<const __m256i*>(p)));
+    }
+    static F load(const int8_t* p) {  // 16 bytes
+        return _mm512_cvtepi32_ps(_mm512_cvtepi8_epi32(_mm_loadu_si128(reinterpret_cast<const __m128i*>(p))));
     }
     static void store(float* p, F a) { _mm512_storeu_ps(p, a.v); }
     static F iota() { return _mm512_setr_ps(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15); }

@@ -7,8 +7,9 @@ Two entry points share the kernels:
     takes them (:mod:`render_core.raster.splats`; the ``render()`` backend, tested against the reference
     rasterizer);
   - :class:`NativeAvatar`: an avatar in the packed layout of :mod:`render_core.packed` (Gaussian rows and the
-    geometry and colour tables of the (Gaussian, blendshape) pairs that are not zero, fp32 or fp16; an avatar
-    read from a schema-2 bundle already is that layout and is used as mapped) - rendered by the fused per-frame
+    geometry and colour tables of the (Gaussian, blendshape) pairs that are not zero, fp32, fp16 or int8 with
+    their scales, read as they are stored; an avatar read from a schema-2 bundle already is that layout and is used
+    as mapped) - rendered by the fused per-frame
     pipeline (blend, pose correctives, eyelids, LBS, SH colour, projection, tile binning, depth sort,
     compositing) for B frames in one call.
 Arrays cross into C++ as numpy views of contiguous CPU float32 tensors: no copies.
@@ -26,6 +27,7 @@ import torch
 from torch import Tensor
 
 from .. import packed
+from ..avatar import PRECISIONS as AVATAR_PRECISIONS
 from ..avatar import Avatar, check_raster_mode, sh_coeff_count
 from ..camera import Cameras
 from ..errors import OptionError, ShapeError
@@ -39,7 +41,7 @@ except ImportError as e:  # a source tree without the compiled extension
 else:
     IMPORT_ERROR = None
 
-PRECISIONS = ("fp32", "fp16")
+PRECISIONS = ("fp32", "fp16", "int8")
 log = logging.getLogger(__name__)
 
 
@@ -269,6 +271,8 @@ class NativeAvatar:
 
     An avatar read from a schema-2 bundle already is that layout: its memory-mapped tensors go to the C++ side as
     they are (no copy; only the small transposed LBS weights are built). Any other avatar is packed once here.
+    ``precision`` (:data:`PRECISIONS`; default the avatar's) is the storage the blend reads: another than the
+    avatar's is made here (cast, quantised to int8 or dequantised from it).
     """
 
     def __init__(self, avatar: Avatar, precision: str | None = None):
@@ -277,12 +281,13 @@ class NativeAvatar:
             precision = avatar.precision
         if precision not in PRECISIONS:
             raise OptionError(f"must be one of {PRECISIONS}, got {precision!r}", field="precision")
-        store = torch.float16 if precision == "fp16" else torch.float32
+        store = AVATAR_PRECISIONS[precision]
+        side = torch.float16 if store == torch.int8 else store  # the pose correctives of int8 avatars are fp16
         n, k, j = avatar.num_gaussians, avatar.num_expressions, avatar.num_joints
         c = sh_coeff_count(avatar.sh_degree)
         deltas = avatar.sparse_deltas(store)
-        pc = (packed.pack_correctives(avatar.pose_correctives, store) if avatar.pose_correctives is not None and j > 1
-              else torch.zeros(0, dtype=store))
+        pc = (packed.pack_correctives(avatar.pose_correctives, side) if avatar.pose_correctives is not None and j > 1
+              else torch.zeros(0, dtype=side))
         eyelid = (packed.pack_eyelids(avatar.eyelid_offsets) if avatar.eyelid_offsets is not None
                   else torch.zeros(0))
         mouth_joint = torch.tensor([avatar.joint_index(nm) for nm in avatar.mouth_joint_names])[avatar.mouth_group]
@@ -291,8 +296,13 @@ class NativeAvatar:
         lbs[:, :n] = avatar.lbs_weights.T
         lbs[mouth_joint, torch.arange(n, n + avatar.num_mouth)] = 1.0
 
-        def bits(t: Tensor) -> np.ndarray:  # fp16 crosses as its uint16 bits
-            return t.contiguous().view(torch.int16).numpy().view(np.uint16) if t.dtype == torch.float16 else _np(t)
+        def bits(t: Tensor) -> np.ndarray:  # fp16 crosses as its uint16 bits, int8 as it is
+            if t.dtype == torch.float16:
+                return t.contiguous().view(torch.int16).numpy().view(np.uint16)
+            return t.contiguous().numpy() if t.dtype == torch.int8 else _np(t)
+
+        def extra(t: Tensor | None, dtype: type) -> np.ndarray:  # int8 tables' scales and residuals, else empty
+            return t.contiguous().numpy() if t is not None else np.zeros(0, dtype)
 
         g, sh = deltas.geometry, deltas.color
         self._arrays = dict(
@@ -304,10 +314,13 @@ class NativeAvatar:
             lbs=lbs.numpy(),
             joints=_np(avatar.joint_positions),
             parents=np.asarray(avatar.joint_parents, dtype=np.int32),
+            geo_scale=extra(g.scale, np.float32), geo_residual=extra(g.position_residual, np.int8),
+            sh_scale=extra(sh.scale, np.float32),
         )
         self.handle = _native.NativeAvatar(**self._arrays, n_face=n, K=k, C=c)
         self.avatar = avatar
-        streamed = ("base", "geo_ptr", "geo_col", "geo_vals", "sh_ptr", "sh_col", "sh_vals", "pc")
+        streamed = ("base", "geo_ptr", "geo_col", "geo_vals", "sh_ptr", "sh_col", "sh_vals", "pc",
+                    "geo_residual", "geo_scale", "sh_scale")
         self.stats = PackStats(
             pairs_stored=g.count + sh.count, pairs_total=2 * n * k,
             blend_bytes=int(sum(self._arrays[key].nbytes for key in streamed)),

@@ -192,7 +192,8 @@ def bench_render(
     (``vs_reference``: the speed-up); 0 (the default) skips it: at 64k Gaussians and 512 px one reference frame
     takes tens of seconds.
 
-    ``precision`` is the blendshape storage: the synthetic avatar's ("fp32" or "fp16"), and for the cuda backend
+    ``precision`` is the blendshape storage: the synthetic avatar's ("fp32", "fp16" or "int8": quantised pairs,
+    which the native blend reads as they are and the cuda backend dequantises to fp32), and for the cuda backend
     the storage on the GPU ("bf16" too, from an fp16 avatar).
 
     ``schedule`` (native): ``"on"`` (every :class:`~render_core.raster.native.Schedule` switch), ``"off"`` (the
