@@ -46,7 +46,7 @@ class Aligned:
     expression: np.ndarray
 
 
-def _moved_camera(cams: Cameras, w: Tensor, u: Tensor, centre: Tensor) -> tuple[Tensor, Tensor]:
+def moved_camera(cams: Cameras, w: Tensor, u: Tensor, centre: Tensor) -> tuple[Tensor, Tensor]:
     """(R Q, t + R (c - Q c + u)): the camera that sees the unmoved head as ``cams`` sees the moved one."""
     Q = axis_angle_to_matrix(w)
     R = cams.R @ Q
@@ -54,16 +54,21 @@ def _moved_camera(cams: Cameras, w: Tensor, u: Tensor, centre: Tensor) -> tuple[
     return R, t
 
 
-def _render(avatar: Avatar, cams: Cameras, splats: Splats, w: Tensor, u: Tensor, rasterize) -> Tensor:
-    """The head ``splats`` (posed, before the motion) moved by (w, u) and seen by ``cams``."""
+def moved_splats(splats: Splats, cams: Cameras, w: Tensor, u: Tensor) -> ShadedSplats:
+    """The posed head ``splats`` moved by (w [B, 3], u [B, 3]) about its centre, shaded for ``cams``: what
+    ``cams`` sees is the unmoved head seen by the moved camera (:func:`moved_camera`). Differentiable in w, u
+    and the splats."""
     centre = splats.means.mean(1).detach()  # [B, 3]: the head's centre, the rotation's pivot
     Q = axis_angle_to_matrix(w)
     means = ((splats.means - centre[:, None]) @ Q.transpose(1, 2)) + centre[:, None] + u[:, None]
     quats = quat_multiply(matrix_to_quat(Q)[:, None].expand_as(splats.quats), splats.quats)
-    R, t = _moved_camera(cams, w, u, centre)
+    R, t = moved_camera(cams, w, u, centre)
     colours = shade(splats, -(R.transpose(1, 2) @ t[..., None])[..., 0])
-    rgb, _ = rasterize(ShadedSplats(means, quats, splats.scales, splats.opacities, colours), cams, None,
-                       avatar.raster_mode)
+    return ShadedSplats(means, quats, splats.scales, splats.opacities, colours)
+
+
+def _render(avatar: Avatar, cams: Cameras, splats: Splats, w: Tensor, u: Tensor, rasterize) -> Tensor:
+    rgb, _ = rasterize(moved_splats(splats, cams, w, u), cams, None, avatar.raster_mode)
     return rgb
 
 
@@ -94,6 +99,6 @@ def align_frames(avatar: Avatar, frame: Frame, cams: Cameras, target: Tensor, *,
         opt.step()
     with torch.no_grad():
         centre = skin(avatar, blend(avatar, frame.expression + de), frame).means.mean(1)
-        R, t = _moved_camera(cams, w, u, centre)
+        R, t = moved_camera(cams, w, u, centre)
     return Aligned(R.numpy().astype(np.float32), t.numpy().astype(np.float32),
                    (frame.expression + de).detach().numpy().astype(np.float32))

@@ -483,6 +483,8 @@ def cmd_train(args: argparse.Namespace) -> int:
         from ..errors import OptionError
 
         raise OptionError("--prune-at needs --prune FRACTION", field="prune_at")
+    if args.refine_poses:
+        preset = preset.with_(refine_poses=True)
     if args.prune:
         if args.iterations:  # the default pruning iterations follow the run's length
             preset = preset.with_(iterations=args.iterations)
@@ -818,6 +820,9 @@ def _add_train_command(sub: argparse._SubParsersAction) -> None:
     t.add_argument("--prune-at", type=_iterations, default=None, metavar="IT[,IT...]",
                    help="the pruning iterations (default: one densification interval after densification ends, "
                         "and 40%% of the way from there to the end)")
+    t.add_argument("--refine-poses", action="store_true",
+                   help="learn a rigid correction of each training frame's head pose with the avatar (for tracked "
+                        "videos whose poses are off by about a pixel, e.g. `blendsplat track`'s output)")
     t.add_argument("--seed", type=int, default=0)
     t.add_argument("--quiet", action="store_true", help="no progress bar")
     t.set_defaults(fn=cmd_train)

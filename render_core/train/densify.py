@@ -124,6 +124,12 @@ class DensifyStrategy:
         self.max_radii = (state["max_radii"].to(dev, copy=True) if "max_radii" in state
                           else torch.zeros_like(self.denom))
 
+    def select(self, index: Tensor) -> None:
+        """Keep the statistics of the face Gaussians ``index`` only, in that order (after a removal that kept
+        them, e.g. :mod:`.prune`'s)."""
+        self.grad_accum, self.denom, self.max_radii = (t[index] for t in (self.grad_accum, self.denom,
+                                                                          self.max_radii))
+
     # ------------------------------------------------------------------------------------------- the schedule
     def collects(self, iteration: int) -> bool:
         """Whether gradient statistics are gathered at this (1-based) iteration."""

@@ -43,6 +43,15 @@ class Preset:
     max_screen_radius: float = 20.0  # pixels (3DGS's max_screen_size)
     grid_resolution: int = 256  # lookup grid for children's and moved Gaussians' LBS weights and d (0: no grid,
     # children copy their parent's)
+    # Pruning by contribution (:mod:`.prune`): at these iterations (none: off) the face Gaussians with the least
+    # blending weight over ``prune_frames`` training frames go; ``prune_fraction`` of them in all (0: off).
+    prune_at: tuple[int, ...] = ()
+    prune_fraction: float = 0.0
+    prune_frames: int = 24
+    # Per-frame head poses refined with the avatar (:mod:`.poses`), from this iteration on: for tracked videos whose
+    # poses are off by about a pixel (``blendsplat track``'s output; ``train --refine-poses``).
+    refine_poses: bool = False
+    refine_poses_from: int = 500
     # Bookkeeping.
     checkpoint_every: int = 1000
     log_every: int = 10
@@ -58,6 +67,23 @@ class Preset:
         most a tenth of them, the densification cap scaled alike."""
         return replace(self, gaussians=gaussians, mouth=max(2, min(self.mouth, gaussians // 10)),
                        max_gaussians=max(gaussians, self.max_gaussians * gaussians // self.gaussians))
+
+    def with_pruning(self, fraction: float, at: tuple[int, ...] | None = None) -> Preset:
+        """Contribution pruning (``train --prune``): ``fraction`` (0 <= f < 1; 0: off) of the face Gaussians removed
+        in all, at iterations ``at`` (default: one densification interval after densification ends and 40% of
+        the way from there to the last iteration, so that the rest fine-tunes the survivors)."""
+        fraction = float(fraction)
+        if not 0.0 <= fraction < 1.0:
+            raise OptionError(f"must be in [0, 1), got {fraction}", field="prune")
+        if fraction == 0.0:
+            return replace(self, prune_at=(), prune_fraction=0.0)
+        if at is None:
+            end = min(self.densify_until if self.densify else 0, self.iterations)
+            at = (end + self.densify_every, end + 2 * (self.iterations - end) // 5)
+        at = tuple(sorted({int(i) for i in at if 0 < int(i) < self.iterations}))
+        if not at:
+            raise OptionError(f"no pruning iteration falls inside the {self.iterations} iterations", field="prune")
+        return replace(self, prune_at=at, prune_fraction=fraction)
 
     def to_dict(self) -> dict:
         return asdict(self)

@@ -4,13 +4,14 @@ Per iteration (docs/method.md sections 5 and 6): one random training frame (a se
 the consistency parametrisation of :mod:`.model`) -> skin -> shade (SH at the view direction, degree ramped) ->
 the differentiable rasterizer (the backend registry's step for the device: the native C++ forward and backward on
 the CPU, gsplat's on CUDA) -> 0.8 L1 + 0.2 D-SSIM + 10 alpha MSE + 100 mouth cylinder -> backward -> Adam (eps
-1e-15, per-group learning rates, xyz decay) -> densification (:class:`.densify.DensifyStrategy`, on its schedule).
+1e-15, per-group learning rates, xyz decay) -> densification (:class:`.densify.DensifyStrategy`, on its schedule)
+-> pruning by contribution (:class:`.prune.ContributionPruner`, at the preset's ``prune_at`` iterations).
 
 The trainer's state is the model, the optimizer, the frame-sampling generator, the densification strategy's
-statistics and the iteration; the schedule (SH ramp, xyz decay, densification, log and checkpoint intervals) is
-the preset's. :meth:`Trainer.checkpoint` saves all of it and :meth:`Trainer.resume` restores it, so a resumed
-training gives the same parameters as an uninterrupted one. Reads only what a real user has: the dataset's frames,
-masks and tracking.
+statistics, the pruning record and the iteration; the schedule (SH ramp, xyz decay, densification, pruning, log
+and checkpoint intervals) is the preset's. :meth:`Trainer.checkpoint` saves all of it and :meth:`Trainer.resume`
+restores it, so a resumed training gives the same parameters as an uninterrupted one. Reads only what a real user
+has: the dataset's frames, masks and tracking.
 
 The work folder: ``checkpoints/ckpt_<iteration>.pt`` (the last two; local files of tensors, numbers and strings,
 loaded with ``weights_only=True``), ``log.jsonl`` (a record every ``log_every`` iterations, the first, the last
@@ -45,6 +46,7 @@ from ..data import read_dataset
 from ..data.frames import check_compatible, frame_inputs, targets
 from ..deform import Frame, Splats, shade, skin
 from ..errors import DatasetError, OptionError
+from ..evaluation.align import moved_splats
 from ..evaluation.metrics import psnr
 from ..facemodel import FaceModel, read_facemodel
 from . import losses
@@ -52,14 +54,16 @@ from .densify import DensifyStrategy
 from .grids import lookup_grid
 from .initialize import init_avatar
 from .model import TrainableAvatar
+from .poses import FramePoses
 from .presets import Preset, get_preset
+from .prune import ContributionPruner
 
 log = logging.getLogger(__name__)
 
 CHECKPOINT_FORMAT = "blendsplat-train-checkpoint"
 CHECKPOINT_VERSION = 1
 CHECKPOINTS_KEPT = 2
-STAGES = ("data", "blend", "skin", "shade", "raster", "loss", "backward", "optimizer", "densify")
+STAGES = ("data", "blend", "skin", "shade", "raster", "loss", "backward", "optimizer", "densify", "prune")
 DEVICES = {"cpu": "native", "cuda": "cuda"}  # training device -> the raster backend whose differentiable step runs
 
 
@@ -78,6 +82,7 @@ class Progress:
     frame: int  # the dataset index of the frame trained on
     sh_degree: int
     densified: dict | None = None  # the densification counts when this iteration refined
+    pruned: dict | None = None  # the contribution-pruning counts when this iteration pruned
     preview: np.ndarray | None = None  # [H, W, 3] uint8 (:meth:`Trainer.preview`) when the run was asked for one
 
 
@@ -199,12 +204,14 @@ def stage_clock(device: torch.device) -> Callable[[], float]:
 def forward(model: TrainableAvatar, frame: Frame, cameras: Cameras, sh_degree: int | None = None, *,
             rasterize: raster.Differentiable | None = None, threads: int = 0,
             times: dict | None = None, clock: Callable[[], float] = time.perf_counter,
+            motion: tuple[torch.Tensor, torch.Tensor] | None = None,
             ) -> tuple[torch.Tensor, torch.Tensor, Splats]:
     """Render B frames of the model (differentiable): rgb [B, H, W, 3], alpha [B, H, W] on a black background,
     and the posed splats (face Gaussians first; densification reads them).
 
     ``rasterize``: the rasterization step (:func:`raster_step`; default the CPU's). ``times``: stage seconds
-    (read with ``clock``, :func:`stage_clock`) are added to it."""
+    (read with ``clock``, :func:`stage_clock`) are added to it. ``motion``: (w [B, 3], u [B, 3]), a rigid
+    correction of each frame's head (:class:`.poses.FramePoses`), or None."""
     rasterize = rasterize or raster_step("cpu")
     t0 = clock()
     avatar = model.avatar(sh_degree, deltas=False)
@@ -212,9 +219,12 @@ def forward(model: TrainableAvatar, frame: Frame, cameras: Cameras, sh_degree: i
     t1 = clock()
     splats = skin(avatar, blended, frame)
     t2 = clock()
-    colors = shade(splats, cameras.centres.to(splats.means))
+    if motion is None:
+        colors = shade(splats, cameras.centres.to(splats.means))
+        shaded = raster.ShadedSplats(splats.means, splats.quats, splats.scales, splats.opacities, colors)
+    else:
+        shaded = moved_splats(splats, cameras, *motion)
     t3 = clock()
-    shaded = raster.ShadedSplats(splats.means, splats.quats, splats.scales, splats.opacities, colors)
     rgb, alpha = rasterize(shaded, cameras, None, avatar.raster_mode, threads=threads)
     t4 = clock()
     if times is not None:
@@ -399,6 +409,11 @@ class Trainer:
         self._times: dict[str, float] = defaultdict(float)
         self._history: list[dict] = []  # the log records written since this state began
         self._densified: list[dict] = []
+        self._pruner = ContributionPruner.from_preset(cfg)
+        self._poses = FramePoses(len(self.train_idx), device=dev) if cfg.refine_poses else None
+        if self._poses is not None and state is not None and "poses" in state:
+            self._poses.load_state(state["poses"])
+        self._pruned: list[dict] = [dict(p) for p in state.get("pruned", [])] if state is not None else []
         self._pending: dict | None = None  # the last step's record when the log has not had it
         self._disk_ready = False
         self._grid_start = (grid.built, grid.build_seconds) if grid is not None else (0, 0.0)  # grids are shared
@@ -485,7 +500,10 @@ class Trainer:
             "model": self._model.state(), "optimizer": self._optimizer.state_dict(),
             "rng": self._generator.get_state(), "preset": self.preset.to_dict(), "cylinder": self.cylinder.to_dict(),
             "seed": self.seed, "seconds": self.elapsed, "densifier": self._strategy.state(),
+            "pruned": [dict(p) for p in self._pruned],
         }
+        if self._poses is not None:
+            state["poses"] = self._poses.state()
         with atomic_path(path) as tmp:
             torch.save(state, tmp)
         for old in _checkpoints(self.workdir)[:-CHECKPOINTS_KEPT]:
@@ -516,16 +534,22 @@ class Trainer:
             if g["name"] in ("means", "mouth_means"):
                 g["lr"] = xyz_lr(cfg, it)
         times["data"] += clock() - t0
+        poses = self._poses if self._poses is not None and it > cfg.refine_poses_from else None
+        motion = poses.motion(j) if poses is not None else None
         rgb, alpha, posed = forward(model, frame, cams, degree, rasterize=self.rasterize, threads=cfg.threads,
-                                    times=times, clock=clock)
+                                    times=times, clock=clock, motion=motion)
         self._strategy.step_pre_backward(it, posed)
         t1 = clock()
         loss, terms = losses.total_loss(rgb, alpha, rgb_t, mask_t, model.mouth_means, self.cylinder)
+        if poses is not None:
+            loss = loss + poses.prior()
         t2 = clock()
         opt.zero_grad(set_to_none=True)
         loss.backward()
         t3 = clock()
         opt.step()
+        if poses is not None:
+            poses.step()
         t4 = clock()
         times["loss"] += t2 - t1
         times["backward"] += t3 - t2
@@ -533,7 +557,15 @@ class Trainer:
         densified = self._strategy.step_post_backward(it, model, opt, gen, cams)
         if densified is not None:
             self._densified.append({"iteration": it, **densified})
-        times["densify"] += clock() - t4
+        t5 = clock()
+        times["densify"] += t5 - t4
+        pruned = None
+        if self._pruner.due(it):
+            pruned = {"iteration": it, **self._pruner.prune(model, opt, self._strategy, self._frames, self._cams,
+                                                            self.rasterize, threads=cfg.threads)}
+            self._pruned.append(pruned)
+            log.info("iteration %d: pruned by contribution %s", it, pruned)
+            times["prune"] += clock() - t5
         self.iteration = it
         self._steps += 1
         scalars = torch.stack([loss.detach().float(), *(v.detach().float() for v in terms.values())]).tolist()
@@ -542,11 +574,13 @@ class Trainer:
         self._seconds += clock() - t0
         self._pending = {"iteration": it, **values, "psnr": step_psnr, "frame": index, "sh_degree": degree,
                          "gaussians": model.num_gaussians, "seconds": round(self.elapsed, 3)}
-        if it % cfg.log_every == 0 or it == 1 or it == self.total:
+        if pruned is not None:
+            self._pending["pruned"] = {k: v for k, v in pruned.items() if k != "iteration"}
+        if it % cfg.log_every == 0 or it == 1 or it == self.total or pruned is not None:
             self._write_log()
         return Progress(iteration=it, total=self.total, losses=values, psnr=step_psnr, gaussians=model.num_gaussians,
                         elapsed=self.elapsed, eta=(self.total - it) * self._seconds / self._steps, frame=index,
-                        sh_degree=degree, densified=densified)
+                        sh_degree=degree, densified=densified, pruned=pruned)
 
     def _write_log(self) -> None:
         if self._pending is None:
@@ -622,6 +656,8 @@ class Trainer:
             "first": self._history[0] if self._history else None,
             "last": self._history[-1] if self._history else None,
             "densified": list(self._densified),
+            "pruned": list(self._pruned),
+            "poses": None if self._poses is None else self._poses.summary(),
             "grid": None if grid is None else {"resolution": grid.resolution,
                                                "bricks_built": grid.built - self._grid_start[0],
                                                "build_seconds": round(grid.build_seconds - self._grid_start[1], 3)},

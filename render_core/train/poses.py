@@ -1,0 +1,91 @@
+"""Per-frame head poses refined with the avatar (``Preset.refine_poses``; docs/method.md section 6).
+
+A tracked video's poses carry the tracker's error, about a pixel on a phone video or a ``blendsplat track`` of one
+(docs/method.md section 13), and the avatar cannot fit frames that disagree with each other: trained on such a
+tracking it blurs. So each training frame gets a small rigid correction of its head, a rotation ``w`` about the
+head's centre and a translation ``u`` (:func:`render_core.evaluation.align.moved_splats`, which folds exactly into
+the frame's camera), learnt with the avatar from ``refine_poses_from`` on.
+
+Each frame is seen only when its iteration draws it (about iterations / frames times), so its correction has an
+Adam state of its own that moves only when the frame is drawn (a shared Adam would keep moving every unseen row on
+its momentum), and a weak prior ``POSE_PRIOR |(w, u)|^2`` keeps the corrections from drifting together with the
+avatar (the world frame is the tracker's).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..camera import Cameras
+from ..evaluation.align import ROTATION_LR, TRANSLATION_LR, moved_camera
+
+BETAS = (0.9, 0.999)
+EPS = 1e-8
+POSE_PRIOR = 1e-3  # per unit of radians^2 and (metres x 10)^2, against the mean L1 image residual
+
+
+class FramePoses:
+    """Rigid corrections ``(w, u)`` of F frames' head poses, each with its own Adam step count."""
+
+    def __init__(self, frames: int, lr_scale: float = 0.5, device: torch.device | str = "cpu"):
+        self.wu = torch.zeros(frames, 6, device=device)
+        self.m = torch.zeros(frames, 6, device=device)
+        self.v = torch.zeros(frames, 6, device=device)
+        self.steps = torch.zeros(frames, dtype=torch.int64)
+        self.lr = torch.tensor([ROTATION_LR] * 3 + [TRANSLATION_LR] * 3, device=device) * lr_scale
+
+    def __len__(self) -> int:
+        return len(self.wu)
+
+    def motion(self, j: int) -> tuple[Tensor, Tensor]:
+        """(w [1, 3], u [1, 3]) of frame j, differentiable: pass them to moved_splats, then :meth:`step`."""
+        wu = self.wu[j:j + 1].clone().requires_grad_(True)
+        self._leaf = (j, wu)
+        return wu[:, :3], wu[:, 3:]
+
+    def prior(self) -> Tensor:
+        """The prior on the frame last given by :meth:`motion` (add it to the loss)."""
+        _, wu = self._leaf
+        scaled = torch.cat([wu[:, :3], wu[:, 3:] * 10.0], -1)
+        return POSE_PRIOR * scaled.square().sum()
+
+    @torch.no_grad()
+    def step(self) -> None:
+        """One Adam step of the frame last given by :meth:`motion`, from its gradient."""
+        j, wu = self._leaf
+        if wu.grad is None:
+            return
+        g = wu.grad[0]
+        self.steps[j] += 1
+        t = int(self.steps[j])
+        self.m[j] = BETAS[0] * self.m[j] + (1 - BETAS[0]) * g
+        self.v[j] = BETAS[1] * self.v[j] + (1 - BETAS[1]) * g * g
+        m_hat = self.m[j] / (1 - BETAS[0] ** t)
+        v_hat = self.v[j] / (1 - BETAS[1] ** t)
+        self.wu[j] -= self.lr * m_hat / (v_hat.sqrt() + EPS)
+
+    def state(self) -> dict:
+        return {"wu": self.wu.clone(), "m": self.m.clone(), "v": self.v.clone(), "steps": self.steps.clone()}
+
+    def load_state(self, state: dict) -> None:
+        for name in ("wu", "m", "v", "steps"):
+            value = state[name]
+            if value.shape != getattr(self, name).shape:
+                raise ValueError(f"pose state {name}: {list(value.shape)}, expected {list(getattr(self, name).shape)}")
+            setattr(self, name, value.to(getattr(self, name).device).clone())
+
+    def cameras(self, cams: Cameras, centres: Tensor) -> tuple[np.ndarray, np.ndarray]:
+        """The F frames' cameras with their corrections folded in (``centres`` [F, 3]: each frame's head centre,
+        the pivot the corrections turned about): (R [F, 3, 3], t [F, 3])."""
+        R, t = moved_camera(cams, self.wu[:, :3], self.wu[:, 3:], centres)
+        return R.cpu().numpy(), t.cpu().numpy()
+
+    def summary(self) -> dict:
+        """The corrections' size over the frames: median and largest rotation (degrees) and translation (mm)."""
+        deg = torch.rad2deg(self.wu[:, :3].norm(dim=1)).cpu()
+        mm = (self.wu[:, 3:].norm(dim=1) * 1e3).cpu()
+        return {"frames": len(self), "rotation_deg": {"median": round(float(deg.median()), 3),
+                                                      "max": round(float(deg.max()), 3)},
+                "translation_mm": {"median": round(float(mm.median()), 3), "max": round(float(mm.max()), 3)}}

@@ -1,0 +1,132 @@
+"""Pruning by contribution (docs/method.md section 6): fewer face Gaussians for (nearly) the same image.
+
+The contribution of face Gaussian i is the sum, over a fixed sample of training frames and over their pixels, of
+its blending weight w_ip = alpha_ip T_ip (its alpha at pixel p times the transmittance in front of it: its share of
+that pixel's colour). The image is linear in the colours, rgb_p = sum_i w_ip c_i (+ T_p x background), so the
+gradient of the summed image with respect to one colour channel of Gaussian i is exactly sum_p w_ip: one forward
+and backward of the training rasterizer per frame (:func:`contribution`), with whatever step the training device
+uses (the native C++ backward on the CPU, gsplat's on CUDA), the pairs it skips (alpha < 1/255, past the
+transmittance stop) excluded as they are from the image.
+
+:class:`ContributionPruner` owns the schedule (preset ``prune_at``, ``prune_fraction``, ``prune_frames``): at each
+iteration of ``prune_at`` it scores the face Gaussians on ``prune_frames`` training frames (evenly spaced: no
+random draw, so a resumed run scores the same frames) and removes the lowest-scoring ones through
+:func:`.densify.reindex` (survivors keep their Adam moments, their blendshape pairs and LBS weights; the
+densification statistics follow them); training then continues and fine-tunes the rest. ``prune_fraction`` is
+the fraction of face Gaussians removed over the whole schedule: each of the m pruning iterations removes
+1 - (1 - f)^(1/m) of those present. The mouth interior is never pruned. Off when ``prune_at`` is empty or
+``prune_fraction`` is 0.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from .. import raster
+from ..camera import Cameras
+from ..deform import Frame, Splats, skin
+from .densify import DensifyStrategy, reindex
+from .model import TrainableAvatar
+from .presets import Preset
+
+log = logging.getLogger(__name__)
+
+
+def blend_weights(splats: Splats | raster.ShadedSplats, cameras: Cameras, rasterize: raster.Differentiable,
+                  mode: str = "classic", *, threads: int = 0) -> Tensor:
+    """[B, N]: for each of the B sets of posed splats (set b seen by camera b; their SH is not read), each splat's
+    sum over the pixels of its blending weight alpha T, read as the gradient of the summed red channel with respect
+    to its red colour (exact: the image is linear in the colours, whose values do not matter)."""
+    colors = torch.zeros_like(splats.means, requires_grad=True)
+    shaded = raster.ShadedSplats(splats.means.detach(), splats.quats.detach(), splats.scales.detach(),
+                                 splats.opacities.detach(), colors)
+    rgb, _ = rasterize(shaded, cameras, None, mode, threads=threads)
+    (grad,) = torch.autograd.grad(rgb[..., 0].sum(), colors)
+    return grad[..., 0]
+
+
+def contribution(model: TrainableAvatar, frames: Frame, cameras: Cameras, rasterize: raster.Differentiable, *,
+                 threads: int = 0) -> Tensor:
+    """Per face Gaussian [N] (float64, on the model's device): :func:`blend_weights` summed over the B frames
+    (``frames``, ``cameras``: one camera per frame), one frame at a time."""
+    n = model.num_gaussians
+    score = torch.zeros(n, dtype=torch.float64, device=model.means.device)
+    with torch.no_grad():
+        avatar = model.avatar(0, detach=True, deltas=False)  # the colours do not change the weights
+    for j in range(len(frames)):
+        frame = Frame(frames.expression[j:j + 1], frames.joint_rotations[j:j + 1],
+                      None if frames.eyelids is None else frames.eyelids[j:j + 1])
+        with torch.no_grad():
+            splats = skin(avatar, model.blend(frame.expression, 0), frame)
+        w = blend_weights(splats, cameras.index(j), rasterize, avatar.raster_mode, threads=threads)
+        score += w[0, :n].to(score.dtype)
+    return score
+
+
+def prune_lowest(model: TrainableAvatar, opt: torch.optim.Optimizer, score: Tensor, count: int,
+                 strategy: DensifyStrategy | None = None) -> dict:
+    """Remove the ``count`` face Gaussians with the lowest ``score`` [N] (ties: the later index goes first), keeping
+    the order, Adam moments and blendshape entries of the rest (and ``strategy``'s statistics of them). Returns
+    the counts: before, after, pruned, mass_kept (the fraction of the score the survivors hold), unseen (Gaussians
+    with a zero score)."""
+    n = model.num_gaussians
+    count = min(max(int(count), 0), n - 1)
+    with torch.no_grad():
+        order = torch.argsort(score, descending=True, stable=True)
+        keep = order[: n - count].sort().values
+        total = float(score.sum())
+        kept = float(score[keep].sum())
+        if count:
+            reindex(model, opt, keep, torch.zeros(len(keep), dtype=torch.bool, device=keep.device))
+            if strategy is not None:
+                strategy.select(keep)
+    return {"before": n, "after": model.num_gaussians, "pruned": count,
+            "mass_kept": round(kept / total, 6) if total > 0 else 1.0, "unseen": int((score <= 0).sum())}
+
+
+def step_fraction(fraction: float, steps: int) -> float:
+    """What each of ``steps`` prunings removes so that ``fraction`` of the Gaussians go in all."""
+    if steps <= 0 or fraction <= 0:
+        return 0.0
+    return 1.0 - (1.0 - min(fraction, 1.0)) ** (1.0 / steps)
+
+
+class ContributionPruner:
+    """The preset's contribution-pruning schedule (:meth:`from_preset`); :meth:`due` says when,
+    :meth:`prune` does it. Holds no state of its own: the schedule is the preset's, the sample fixed."""
+
+    def __init__(self, at: tuple[int, ...] = (), fraction: float = 0.0, frames: int = 24):
+        self.at = tuple(sorted({int(i) for i in at})) if fraction > 0 else ()
+        self.fraction, self.frames = float(fraction), max(int(frames), 1)
+        self.each = step_fraction(self.fraction, len(self.at))
+
+    @classmethod
+    def from_preset(cls, preset: Preset) -> ContributionPruner:
+        return cls(preset.prune_at, preset.prune_fraction, preset.prune_frames)
+
+    @property
+    def enabled(self) -> bool:
+        return bool(self.at)
+
+    def due(self, iteration: int) -> bool:
+        return iteration in self.at
+
+    def sample(self, count: int) -> np.ndarray:
+        """Indices into the ``count`` training frames to score on (evenly spaced, at most ``frames``)."""
+        return np.unique(np.linspace(0, count - 1, min(self.frames, count)).round().astype(np.int64))
+
+    def prune(self, model: TrainableAvatar, opt: torch.optim.Optimizer, strategy: DensifyStrategy | None,
+              frames: Frame, cameras: Cameras, rasterize: raster.Differentiable, *, threads: int = 0) -> dict:
+        """Score the face Gaussians on the sample of the training ``frames`` (``cameras``: one per frame) and remove
+        this step's share; the counts of :func:`prune_lowest` and ``frames`` (how many were scored)."""
+        pick = torch.from_numpy(self.sample(len(frames))).to(frames.expression.device)
+        sub = Frame(frames.expression[pick], frames.joint_rotations[pick],
+                    None if frames.eyelids is None else frames.eyelids[pick])
+        cams = Cameras(cameras.K[pick], cameras.R[pick], cameras.t[pick], cameras.width, cameras.height)
+        score = contribution(model, sub, cams, rasterize, threads=threads)
+        count = int(round(self.each * model.num_gaussians))
+        return {**prune_lowest(model, opt, score, count, strategy), "frames": len(pick)}

@@ -1,0 +1,100 @@
+"""Per-frame head poses refined with the avatar (render_core/train/poses.py, `train --refine-poses`)."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from render_core.camera import Cameras
+from render_core.data.generate import synth_dataset
+from render_core.evaluation.metrics import psnr
+from render_core.train import Trainer, get_preset
+from render_core.train.poses import FramePoses
+from render_core.train.trainer import forward
+
+TOY = get_preset("tiny").with_(gaussians=400, mouth=40, sh_every=15, checkpoint_every=1000, log_every=1,
+                               final_eval_frames=2, xyz_decay_steps=50, densify=False)
+
+
+@pytest.fixture(scope="module")
+def toy(head, tmp_path_factory):
+    out = tmp_path_factory.mktemp("poses") / "data"
+    synth_dataset(out, frames=6, size=64, seed=1, facemodel=head)
+    return out
+
+
+def test_a_frame_moves_only_when_it_is_drawn():
+    poses = FramePoses(4)
+    w, u = poses.motion(2)
+    loss = (w * torch.tensor([[1.0, -2.0, 0.5]])).sum() + (u * 3.0).sum() + poses.prior()
+    loss.backward()
+    poses.step()
+    assert torch.count_nonzero(poses.wu[[0, 1, 3]]) == 0 and torch.count_nonzero(poses.m[[0, 1, 3]]) == 0
+    assert (poses.wu[2, :3] * torch.tensor([1.0, -2.0, 0.5])).sum() < 0  # down the gradient
+    assert (poses.wu[2, 3:] < 0).all() and poses.steps.tolist() == [0, 0, 1, 0]
+    # Adam's first step is the learning rate, per parameter
+    torch.testing.assert_close(poses.wu[2].abs(), poses.lr)
+    before = poses.wu.clone()
+    poses.motion(1)
+    poses.step()  # no gradient reached it: nothing moves
+    assert torch.equal(poses.wu, before)
+
+
+def test_state_round_trip_and_refusal():
+    poses = FramePoses(3)
+    w, u = poses.motion(0)
+    (w.sum() + u.sum()).backward()
+    poses.step()
+    other = FramePoses(3)
+    other.load_state(poses.state())
+    for key, value in poses.state().items():
+        assert torch.equal(value, other.state()[key]), key
+    with pytest.raises(ValueError, match="wu"):
+        FramePoses(4).load_state(poses.state())
+
+
+def test_the_corrections_fold_into_the_cameras(toy, head, tmp_path):
+    """A trained correction renders the same through forward()'s motion as through the folded camera."""
+    t = Trainer(toy, tmp_path / "w", TOY.with_(refine_poses=True, refine_poses_from=0), iterations=1, seed=0,
+                facemodel=head)
+    t.step()
+    poses = t._poses
+    j = int(torch.nonzero(poses.steps)[0])
+    assert torch.count_nonzero(poses.wu[j]) == 6
+    poses.wu[j] = torch.tensor([0.02, -0.01, 0.015, 0.003, -0.002, 0.001])  # a visible correction
+    frame, cams = t._frames, t._cams
+    one = type(frame)(frame.expression[j:j + 1], frame.joint_rotations[j:j + 1],
+                      None if frame.eyelids is None else frame.eyelids[j:j + 1])
+    cam = cams.index(j)
+    with torch.no_grad():
+        moved, _, posed = forward(t.model, one, cam, motion=(poses.wu[j:j + 1, :3], poses.wu[j:j + 1, 3:]))
+        plain, _, _ = forward(t.model, one, cam)
+        # every frame's camera folded (the pivots of the others do not matter here), frame j's taken
+        R, tt = poses.cameras(cams, posed.means.mean(1).expand(len(poses), 3))
+        folded, _, _ = forward(t.model, one, Cameras(cam.K, torch.from_numpy(R[j:j + 1]),
+                                                     torch.from_numpy(tt[j:j + 1]), cam.width, cam.height))
+    assert psnr(moved.double().clamp(0, 1), folded.double().clamp(0, 1)) > 60.0
+    assert psnr(moved.double().clamp(0, 1), plain.double().clamp(0, 1)) < 40.0
+
+
+def test_training_refines_poses_and_resumes_them(toy, head, tmp_path):
+    cfg = TOY.with_(refine_poses=True, refine_poses_from=2)
+    straight = Trainer(toy, tmp_path / "a", cfg, iterations=6, seed=3, facemodel=head)
+    straight.run()
+    summary = straight.summary()["poses"]
+    assert summary["frames"] == 5 and summary["rotation_deg"]["max"] > 0
+    assert int(straight._poses.steps.sum()) == 4  # iterations 3..6
+    first = Trainer(toy, tmp_path / "b", cfg, iterations=6, seed=3, facemodel=head)
+    for _ in range(4):
+        first.step()
+    first.checkpoint()
+    second = Trainer(toy, tmp_path / "b", cfg, iterations=6, seed=3, facemodel=head)
+    assert second.resume()
+    while second.iteration < second.total:
+        second.step()
+    for key, value in straight._poses.state().items():
+        assert torch.equal(value, second._poses.state()[key]), key
+    off = Trainer(toy, tmp_path / "c", TOY, iterations=2, seed=3, facemodel=head)
+    off.run()
+    assert off.summary()["poses"] is None
+
