@@ -12,6 +12,7 @@ from render_core.camera import Cameras
 from render_core.data.frames import frame_inputs
 from render_core.data.generate import synth_dataset
 from render_core.deform import Frame, deform
+from render_core.evaluation.align import moved_splats
 from render_core.raster import ShadedSplats, reference
 from render_core.rotation import axis_angle_to_matrix, matrix_to_quat
 from render_core.tools.cli import build_parser
@@ -113,14 +114,21 @@ def test_contribution_is_the_face_gaussians_weights_summed_over_frames(head, dat
     tracking = read_dataset(data).tracking
     frames, cams = frame_inputs(av, tracking, list(tracking.train)[:3])
     got = contribution(model, frames, cams, raster_step("cpu"))
-    want = torch.zeros(300, dtype=torch.float64)
+    # Frames whose heads training moves (refined poses): scored as training renders them.
+    motions = torch.tensor([[0.0, 0.05, 0.0, 0.01, 0.0, 0.0]]).repeat(3, 1)
+    got_moved = contribution(model, frames, cams, raster_step("cpu"), motions=motions)
+    want, want_moved = torch.zeros(300, dtype=torch.float64), torch.zeros(300, dtype=torch.float64)
     for j in range(3):  # the dense blend of the exported avatar, the reference rasterizer
         frame = Frame(frames.expression[j:j + 1], frames.joint_rotations[j:j + 1],
                       None if frames.eyelids is None else frames.eyelids[j:j + 1])
         splats = deform(model.to_avatar(), frame)
         want += blend_weights(splats, cams.index(j), reference_step)[0, :300].double()
+        moved = moved_splats(splats, cams.index(j), motions[j:j + 1, :3], motions[j:j + 1, 3:])
+        want_moved += blend_weights(moved, cams.index(j), reference_step)[0, :300].double()
     assert float(want.sum()) > 10 and int((want > 0).sum()) > 100
     torch.testing.assert_close(got, want, rtol=1e-3, atol=2e-3)
+    torch.testing.assert_close(got_moved, want_moved, rtol=1e-3, atol=2e-3)
+    assert float((got_moved - got).abs().sum()) > 0.1 * float(got.sum())  # the motion matters
 
 
 def test_prune_lowest_keeps_the_survivors_state(head):
@@ -180,6 +188,7 @@ def test_the_schedule_and_its_switches():
     args = parser.parse_args(["train", "d", "--out", "x.bsplat", "--prune", "0.6", "--prune-at", "10,20"])
     assert args.prune == 0.6 and args.prune_at == (10, 20)
     assert parser.parse_args(["train", "d", "--out", "x.bsplat", "--prune", "off"]).prune == 0.0
+    assert parser.parse_args(["train", "d", "--out", "x.bsplat", "--prune", "on"]).prune == 0.4
     assert parser.parse_args(["train", "d", "--out", "x.bsplat"]).prune == 0.0
     with pytest.raises(SystemExit):
         parser.parse_args(["train", "d", "--out", "x.bsplat", "--prune", "1.5"])
@@ -214,6 +223,28 @@ def test_pruning_in_training_and_across_a_resume(head, data, tmp_path):
     # Resumed after the last pruning: nothing more goes.
     third = Trainer(data, tmp_path / "a", TOY, facemodel=head)
     assert third.resume() and third.iteration == 7 and third.model.num_gaussians == 200
+
+
+def test_pruning_scores_refined_poses_as_training_renders_them(head, data, tmp_path, monkeypatch):
+    from render_core.train import prune
+
+    seen = []
+    real = prune.contribution
+
+    def spy(*args, motions=None, **kwargs):
+        seen.append(None if motions is None else motions.clone())
+        return real(*args, motions=motions, **kwargs)
+
+    monkeypatch.setattr(prune, "contribution", spy)
+    cfg = TOY.with_(refine_poses=True, refine_poses_from=1).with_pruning(0.5, (4,))
+    t = Trainer(data, tmp_path / "w", cfg, iterations=5, seed=2, facemodel=head)
+    for _ in range(4):
+        t.step()
+    assert t.model.num_gaussians == 200 and len(seen) == 1
+    pick = torch.from_numpy(t._pruner.sample(len(t.train_idx)))
+    torch.testing.assert_close(seen[0], t._poses.wu[pick])  # the corrections learnt so far (some non-zero)
+    assert float(seen[0].abs().sum()) > 0
+    t.step()  # training goes on
 
 
 @pytest.mark.slow  # two 200-iteration trainings: about a minute on 2 cores, more on a busy machine

@@ -6,7 +6,8 @@ that pixel's colour). The image is linear in the colours, rgb_p = sum_i w_ip c_i
 gradient of the summed image with respect to one colour channel of Gaussian i is exactly sum_p w_ip: one forward
 and backward of the training rasterizer per frame (:func:`contribution`), with whatever step the training device
 uses (the native C++ backward on the CPU, gsplat's on CUDA), the pairs it skips (alpha < 1/255, past the
-transmittance stop) excluded as they are from the image.
+transmittance stop) excluded as they are from the image. With refined poses (:mod:`.poses`) each frame's head is
+moved by its correction, as training renders it.
 
 :class:`ContributionPruner` owns the schedule (preset ``prune_at``, ``prune_fraction``, ``prune_frames``): at each
 iteration of ``prune_at`` it scores the face Gaussians on ``prune_frames`` training frames (evenly spaced: no
@@ -20,8 +21,6 @@ the fraction of face Gaussians removed over the whole schedule: each of the m pr
 
 from __future__ import annotations
 
-import logging
-
 import numpy as np
 import torch
 from torch import Tensor
@@ -29,11 +28,10 @@ from torch import Tensor
 from .. import raster
 from ..camera import Cameras
 from ..deform import Frame, Splats, skin
+from ..evaluation.align import moved_splats
 from .densify import DensifyStrategy, reindex
 from .model import TrainableAvatar
 from .presets import Preset
-
-log = logging.getLogger(__name__)
 
 
 def blend_weights(splats: Splats | raster.ShadedSplats, cameras: Cameras, rasterize: raster.Differentiable,
@@ -50,9 +48,10 @@ def blend_weights(splats: Splats | raster.ShadedSplats, cameras: Cameras, raster
 
 
 def contribution(model: TrainableAvatar, frames: Frame, cameras: Cameras, rasterize: raster.Differentiable, *,
-                 threads: int = 0) -> Tensor:
+                 motions: Tensor | None = None, threads: int = 0) -> Tensor:
     """Per face Gaussian [N] (float64, on the model's device): :func:`blend_weights` summed over the B frames
-    (``frames``, ``cameras``: one camera per frame), one frame at a time."""
+    (``frames``, ``cameras``: one camera per frame), one frame at a time. ``motions``: [B, 6] rigid corrections
+    (w, u) of the frames' heads (:mod:`.poses`, as training renders them), or None."""
     n = model.num_gaussians
     score = torch.zeros(n, dtype=torch.float64, device=model.means.device)
     with torch.no_grad():
@@ -62,6 +61,8 @@ def contribution(model: TrainableAvatar, frames: Frame, cameras: Cameras, raster
                       None if frames.eyelids is None else frames.eyelids[j:j + 1])
         with torch.no_grad():
             splats = skin(avatar, model.blend(frame.expression, 0), frame)
+            if motions is not None:
+                splats = moved_splats(splats, cameras.index(j), motions[j:j + 1, :3], motions[j:j + 1, 3:])
         w = blend_weights(splats, cameras.index(j), rasterize, avatar.raster_mode, threads=threads)
         score += w[0, :n].to(score.dtype)
     return score
@@ -120,13 +121,16 @@ class ContributionPruner:
         return np.unique(np.linspace(0, count - 1, min(self.frames, count)).round().astype(np.int64))
 
     def prune(self, model: TrainableAvatar, opt: torch.optim.Optimizer, strategy: DensifyStrategy | None,
-              frames: Frame, cameras: Cameras, rasterize: raster.Differentiable, *, threads: int = 0) -> dict:
-        """Score the face Gaussians on the sample of the training ``frames`` (``cameras``: one per frame) and remove
-        this step's share; the counts of :func:`prune_lowest` and ``frames`` (how many were scored)."""
+              frames: Frame, cameras: Cameras, rasterize: raster.Differentiable, *, motions: Tensor | None = None,
+              threads: int = 0) -> dict:
+        """Score the face Gaussians on the sample of the training ``frames`` (``cameras``: one per frame;
+        ``motions``: their [F, 6] head corrections, or None) and remove this step's share; the counts of
+        :func:`prune_lowest` and ``frames`` (how many were scored)."""
         pick = torch.from_numpy(self.sample(len(frames))).to(frames.expression.device)
         sub = Frame(frames.expression[pick], frames.joint_rotations[pick],
                     None if frames.eyelids is None else frames.eyelids[pick])
         cams = Cameras(cameras.K[pick], cameras.R[pick], cameras.t[pick], cameras.width, cameras.height)
-        score = contribution(model, sub, cams, rasterize, threads=threads)
+        moved = None if motions is None else motions[pick]
+        score = contribution(model, sub, cams, rasterize, motions=moved, threads=threads)
         count = int(round(self.each * model.num_gaussians))
         return {**prune_lowest(model, opt, score, count, strategy), "frames": len(pick)}

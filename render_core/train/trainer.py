@@ -561,8 +561,9 @@ class Trainer:
         times["densify"] += t5 - t4
         pruned = None
         if self._pruner.due(it):
+            motions = None if poses is None else poses.wu  # the frames as training sees them
             pruned = {"iteration": it, **self._pruner.prune(model, opt, self._strategy, self._frames, self._cams,
-                                                            self.rasterize, threads=cfg.threads)}
+                                                            self.rasterize, motions=motions, threads=cfg.threads)}
             self._pruned.append(pruned)
             log.info("iteration %d: pruned by contribution %s", it, pruned)
             times["prune"] += clock() - t5
