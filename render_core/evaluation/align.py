@@ -98,7 +98,8 @@ def align_frames(avatar: Avatar, frame: Frame, cams: Cameras, target: Tensor, *,
         loss.backward()
         opt.step()
     with torch.no_grad():
-        centre = skin(avatar, blend(avatar, frame.expression + de), frame).means.mean(1)
+        final = skin(avatar, blend(avatar, frame.expression + de), frame) if expressions else fixed
+        centre = final.means.mean(1)
         R, t = moved_camera(cams, w, u, centre)
     return Aligned(R.numpy().astype(np.float32), t.numpy().astype(np.float32),
                    (frame.expression + de).detach().numpy().astype(np.float32))

@@ -117,9 +117,13 @@ def _mean(values) -> float | None:
     return float(np.mean(vals)) if vals else None
 
 
-def _score(rgb: Tensor, gt: Tensor, mask: Tensor) -> dict[str, list]:
-    """Per-frame psnr, ssim and psnr_head of B predictions."""
-    pred = rgb.detach().to("cpu", torch.float64).clamp(0.0, 1.0)
+def _prediction(rgb: Tensor) -> Tensor:
+    """A render as scored: float64 on the CPU, clamped to [0, 1]."""
+    return rgb.detach().to("cpu", torch.float64).clamp(0.0, 1.0)
+
+
+def _score(pred: Tensor, gt: Tensor, mask: Tensor) -> dict[str, list]:
+    """Per-frame psnr, ssim and psnr_head of B predictions (float64, as :func:`_prediction` gives them)."""
     gt, mask = gt.to(torch.float64), mask.to(torch.float64)
     return {"psnr": [psnr(p, g) for p, g in zip(pred, gt, strict=True)],
             "ssim": ssim(pred, gt, reduction="none").tolist(),
@@ -200,17 +204,15 @@ def evaluate(bundle_or_avatar, data_dir, split: str = "test", batch: int = 4, co
         gt, mask = targets(ds, chunk)
         unaligned = None
         if align:
-            unaligned = _score(renderer.render(frame, cams, background=background).rgb, gt, mask)
+            unaligned = _score(_prediction(renderer.render(frame, cams, background=background).rgb), gt, mask)
             frame, cams = _aligned_inputs(avatar, frame, cams, gt, align, align_expressions)
-        out = renderer.render(frame, cams, background=background)
-        pred = out.rgb.detach().to("cpu", torch.float64).clamp(0.0, 1.0)
-        gt, mask = gt.to(torch.float64), mask.to(torch.float64)
-        ssims = ssim(pred, gt, reduction="none")
+        pred = _prediction(renderer.render(frame, cams, background=background).rgb)
+        scores = _score(pred, gt, mask)
+        gt = gt.to(torch.float64)
         lp = lpips_fn(pred, gt) if lpips_fn is not None else None
         for k, i in enumerate(chunk.tolist()):
-            rec = {"index": int(i), "psnr": psnr(pred[k], gt[k]), "ssim": float(ssims[k]),
-                   "psnr_head": psnr_masked(pred[k], gt[k], mask[k]),
-                   "lpips": float(lp[k]) if lp is not None else None}
+            rec = {"index": int(i), "psnr": scores["psnr"][k], "ssim": scores["ssim"][k],
+                   "psnr_head": scores["psnr_head"][k], "lpips": float(lp[k]) if lp is not None else None}
             if unaligned is not None:
                 rec["psnr_head_unaligned"] = unaligned["psnr_head"][k]
                 unaligned_frames.append({key: unaligned[key][k] for key in unaligned})
