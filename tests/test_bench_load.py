@@ -58,3 +58,11 @@ def test_bench_load_vs_v1_reports_the_same_avatar_as_a_dense_schema_1_file(tmp_p
     assert r["v1_over_this"]["file_bytes"] == round(old["file_bytes"] / r["file_bytes"], 2)
     assert set(old["cold_ms"]) == {"read", "renderer", "first_frame", "total"}
     assert sorted(p.name for p in tmp_path.iterdir()) == ["keep"]  # both temporary stores are gone
+
+
+def test_bench_load_vs_v1_of_an_int8_bundle_compares_with_a_dense_fp16_file(tmp_path):
+    """Schema 1 has no int8: the dense comparison is stored in fp16 instead of failing on the precision."""
+    path = tmp_path / "int8.bundle"
+    write_bundle(synth_avatar(gaussians=300, blendshapes=4, seed=3), path, precision="int8")
+    r = bench_load(path, size=16, vs_v1=True)
+    assert (r["precision"], r["v1"]["precision"], r["v1"]["schema_version"]) == ("int8", "fp16", 1)
