@@ -95,9 +95,10 @@ def test_track_writes_a_valid_dataset_with_a_report(tracked):
     mask = ds.mask(0)
     truth_mask = read_dataset(out.parent / "truth").mask(0)
     inter = ((mask > 0.5) & (truth_mask > 0.5)).sum()
-    # the head matte holds the rendered head; it spills over the black background by a margin (measured: 0.78 of it
-    # on the head, 0.65 before the neck's narrower limit; the selfie model's 256x256 output, stretched back)
-    assert inter / (truth_mask > 0.5).sum() > 0.97 and inter / (mask > 0.5).sum() > 0.7
+    # the head matte holds the rendered head; cut to the fitted head's silhouette it spills over the black
+    # background by a small margin (the selfie model's soft edge, the margins left for hair): measured 0.92 of it on
+    # the head (0.78 before the cut)
+    assert inter / (truth_mask > 0.5).sum() > 0.97 and inter / (mask > 0.5).sum() > 0.85
 
 
 def test_the_fit_recovers_the_known_tracking(tracked):

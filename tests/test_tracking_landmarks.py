@@ -15,7 +15,7 @@ from render_core.tracking import fetch_models, runner
 from render_core.tracking.detect import DETECTORS, anchors, detect_faces, weighted_nms
 from render_core.tracking.landmarks import FaceTracker, find_face, track_landmarks
 from render_core.tracking.mesh import POINTS
-from render_core.tracking.segment import head_matte, person_probability
+from render_core.tracking.segment import head_matte, mesh_silhouette, person_probability
 
 # MediaPipe's points compared with the synthetic head: well defined on both (not silhouette points like the chin)
 COMPARED = ("right_eye_outer", "right_eye_inner", "left_eye_inner", "left_eye_outer", "nose_tip", "mouth_right",
@@ -123,6 +123,47 @@ def test_the_head_matte_keeps_the_neck_but_not_the_shoulders_beside_it(astronaut
     above = int(chin_y - 0.3 * height)
     assert matte[above, int(centre_x + 0.7 * width)] > 0.99  # beside the face (ears, hair) stays
     assert matte[int(chin_y + 0.35 * height), int(centre_x)] == 0.0  # the chest
+
+
+def test_the_mesh_silhouette_covers_the_projected_triangles_and_nothing_else():
+    """A square of two triangles 2 m away through a 100 px focal length: pixels [40, 60) on both axes; at a larger
+    size than max_side it is drawn coarse and scaled up, so it stays within a pixel of the scale of it."""
+    vertices = np.array([[-0.2, -0.2, 2.0], [0.2, -0.2, 2.0], [0.2, 0.2, 2.0], [-0.2, 0.2, 2.0]])
+    faces = np.array([[0, 1, 2], [0, 2, 3]])
+    K = np.array([[100.0, 0, 50], [0, 100.0, 50], [0, 0, 1]])
+    sil = mesh_silhouette(vertices, faces, K, 100, 100)
+    want = np.zeros((100, 100), bool)
+    want[40:60, 40:60] = True
+    assert sil.dtype == bool and sil.shape == (100, 100)
+    assert sil[40:60, 40:60].all() and (sil & ~want).sum() <= 2 * 20 + 1  # at most the far edges' row and column
+    big = mesh_silhouette(vertices, faces, K * np.array([[4], [4], [1]]), 400, 400, max_side=100)
+    want_big = np.zeros((400, 400), bool)
+    want_big[160:240, 160:240] = True
+    assert big[164:236, 164:236].all() and not big[:156].any() and not big[244:].any()
+    assert not big[:, :156].any() and not big[:, 244:].any()
+
+
+def test_the_fitted_head_cuts_the_matte_to_the_head_and_its_hair(astronaut):
+    """With the fitted head's silhouette the matte keeps hair above the head (within hair[0] face heights), only a
+    margin beside the jaw and below the chin, and nothing far from the head, where the selfie model says person."""
+    face = find_face(astronaut)
+    lm = face.landmarks[:, :2]
+    chin_y, top_y = lm[:, 1].max(), lm[:, 1].min()
+    height = chin_y - top_y
+    centre_x = (lm[:, 0].max() + lm[:, 0].min()) / 2
+    sil = np.zeros((512, 512), bool)  # a stand-in head: the landmarks' box
+    x0, x1, y0, y1 = (int(v) for v in (lm[:, 0].min(), lm[:, 0].max(), top_y, chin_y))
+    sil[y0:y1, x0:x1] = True
+    prob = np.ones((512, 512), np.float32)
+    plain = head_matte(prob, face.landmarks)
+    cut = head_matte(prob, face.landmarks, silhouette=sil)
+    assert (cut <= plain).all() and cut[(y0 + y1) // 2, (x0 + x1) // 2] > 0.99
+    assert cut[int(y0 - 0.2 * height), int(centre_x)] > 0.99  # hair above the head
+    assert cut[int(y0 - 0.3 * height), int(centre_x)] == 0.0 < plain[int(y0 - 0.3 * height), int(centre_x)]
+    beside_jaw = int(chin_y - 0.1 * height)
+    assert cut[beside_jaw, int(x1 + 0.05 * height)] > 0.99 and cut[beside_jaw, int(x1 + 0.15 * height)] == 0.0
+    below = int(chin_y + 0.1 * height)
+    assert plain[below, int(centre_x)] > 0.99 and cut[below, int(centre_x)] == 0.0  # under the stand-in's chin
 
 
 def test_no_face_is_a_named_error():

@@ -81,7 +81,7 @@ def track_video(video: str | os.PathLike, out: str | os.PathLike, *, fps: float 
     from ..facemodel.open_head import open_head
     from .fit import fit_frames
     from .photometric import refine_poses
-    from .segment import head_matte, person_probability
+    from .segment import head_matte, mesh_silhouette, person_probability
 
     if crop not in CROPS:
         raise TrackingError(f"unknown crop {crop!r}; one of {', '.join(CROPS)}", field="crop")
@@ -146,6 +146,13 @@ def track_video(video: str | os.PathLike, out: str | os.PathLike, *, fps: float 
     tiles: list[np.ndarray] = []
     projected = _projected(model, fit)
     masks: list[np.ndarray] = []
+    faces = model.faces.numpy()
+    template, basis = model.template.double().numpy(), model.expression_basis.double().numpy()
+
+    def posed(k: int) -> np.ndarray:  # frame k's fitted head in camera coordinates (joints at rest)
+        X = template + np.einsum("k,kvc->vc", fit.expression[k], basis)
+        return X @ fit.R[k].T + fit.t[k]
+
     say(f"write: {n} frames")
     t_write = time.perf_counter()
     decode_before = timing["decode"]
@@ -156,7 +163,9 @@ def track_video(video: str | os.PathLike, out: str | os.PathLike, *, fps: float 
             if k is None:
                 continue
             rgb = crop_frame(frame.rgb, window)
-            masks.append(np.round(255 * head_matte(person_probability(rgb), landmarks[i])).astype(np.uint8))
+            head = mesh_silhouette(posed(k), faces, fit.K, size, size)
+            masks.append(np.round(255 * head_matte(person_probability(rgb), landmarks[i], silhouette=head))
+                         .astype(np.uint8))
             if k in sheet_at:
                 tile = rgb.copy()
                 _dots(tile, landmarks[i, track_points(fit)], (230, 40, 40))
