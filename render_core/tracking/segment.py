@@ -11,8 +11,9 @@ heads it paints shoulders under the chin, and the narrower limit below the chin 
 rendered head from 0.65 to 0.78 (its share of the head 1.000 -> 0.999; seeds 223 and 602, every 15th frame).
 
 The fitted head cuts it further (:func:`mesh_silhouette`, ``head_matte(..., silhouette=)``): the matte is kept only
-within ``hair`` face heights of the fitted open head's silhouette above the chin (hair, ears' surroundings) and
-``neck_margin`` below it (the mesh's neck: the avatar is built on that mesh and cannot model a body beyond it). The
+within a margin of the fitted open head's silhouette: ``hair`` face heights (0.25 above the eyes, 0.1 from the eyes
+to the chin: hair, the ears' surroundings) and ``neck_margin`` below the chin (the mesh's neck: the avatar is built
+on that mesh and cannot model a body beyond it). The
 selfie model's shoulders and its blobs beside the neck otherwise become an opaque black rim that training must
 learn (10x weighted alpha loss) and that no held-out frame shows. Measured on ``data synth`` seed 257 (150 frames
 at 256 px): IoU with the true head mask 0.80 -> 0.90 (median), the head still covered; docs/method.md section 13.
