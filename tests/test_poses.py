@@ -98,3 +98,51 @@ def test_training_refines_poses_and_resumes_them(toy, head, tmp_path):
     off.run()
     assert off.summary()["poses"] is None
 
+
+
+def test_expression_corrections_move_only_the_drawn_frame_under_their_prior():
+    poses = FramePoses(3, expressions=4)
+    assert poses.wu.shape == (3, 10)
+    poses.motion(1)
+    base = torch.tensor([[0.2, 0.0, 0.5, 1.0]])
+    corrected = poses.expression(base)
+    assert torch.equal(corrected, base)  # no correction yet
+    (corrected * torch.tensor([[1.0, -1.0, 0.0, 2.0]])).sum().backward()
+    poses.step()
+    assert torch.count_nonzero(poses.wu[[0, 2]]) == 0
+    de = poses.wu[1, 6:]
+    assert de[0] < 0 < de[1] and de[2] == 0 and de[3] < 0 and torch.count_nonzero(poses.wu[1, :6]) == 0
+    frame, (w, u) = poses.applied(1, _frame(base))
+    torch.testing.assert_close(frame.expression, base + de)
+    assert w.shape == u.shape == (1, 3)
+    assert poses.summary()["expression"]["max"] > 0
+    # the prior alone pulls a correction back towards the tracker's coefficients
+    fresh = FramePoses(3, expressions=4)
+    fresh.wu[1, 6:] = torch.tensor([0.3, -0.3, 0.0, 0.1])
+    fresh.motion(1)
+    fresh.prior().backward()
+    fresh.step()
+    torch.testing.assert_close(fresh.wu[1, 6:], torch.tensor([0.3, -0.3, 0.0, 0.1]) - fresh.lr[6:] * torch.tensor(
+        [1.0, -1.0, 0.0, 1.0]))
+    assert "expression" not in FramePoses(3).summary()
+
+
+def _frame(expression):
+    from render_core.deform import Frame
+
+    return Frame(expression, torch.zeros(1, 5, 3, 3), None)
+
+
+def test_training_refines_expressions_and_the_final_psnr_renders_them(toy, head, tmp_path):
+    cfg = TOY.with_(refine_poses=True, refine_expressions=True, refine_poses_from=0)
+    t = Trainer(toy, tmp_path / "e", cfg, iterations=4, seed=3, facemodel=head)
+    t.run()
+    poses = t._poses
+    K = t._frames.expression.shape[1]
+    assert poses.wu.shape == (5, 6 + K) and poses.expressions == K
+    drawn = torch.nonzero(poses.steps).flatten()
+    assert torch.count_nonzero(poses.wu[drawn, 6:]) > 0
+    assert t.summary()["poses"]["expression"]["mean_abs"] > 0
+    final = t.final_psnr()["psnr"]
+    poses.wu[:, 6:] += 0.5  # a large correction everywhere: the final figure must render it
+    assert t.final_psnr()["psnr"] != final

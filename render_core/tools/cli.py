@@ -483,8 +483,8 @@ def cmd_train(args: argparse.Namespace) -> int:
         from ..errors import OptionError
 
         raise OptionError("--prune-at needs --prune FRACTION", field="prune_at")
-    if args.refine_poses:
-        preset = preset.with_(refine_poses=True)
+    if args.refine_poses or args.refine_expressions:
+        preset = preset.with_(refine_poses=True, refine_expressions=args.refine_expressions)
     if args.prune:
         if args.iterations:  # the default pruning iterations follow the run's length
             preset = preset.with_(iterations=args.iterations)
@@ -824,6 +824,9 @@ def _add_train_command(sub: argparse._SubParsersAction) -> None:
     t.add_argument("--refine-poses", action="store_true",
                    help="learn a rigid correction of each training frame's head pose with the avatar (for tracked "
                         "videos whose poses are off by about a pixel, e.g. `blendsplat track`'s output)")
+    t.add_argument("--refine-expressions", action="store_true",
+                   help="with --refine-poses (implied): also correct each training frame's expression "
+                        "coefficients, under a prior (a blink or smile the tracker missed)")
     t.add_argument("--seed", type=int, default=0)
     t.add_argument("--quiet", action="store_true", help="no progress bar")
     t.set_defaults(fn=cmd_train)

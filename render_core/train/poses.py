@@ -10,6 +10,11 @@ Each frame is seen only when its iteration draws it (about iterations / frames t
 Adam state of its own that moves only when the frame is drawn (a shared Adam would keep moving every unseen row on
 its momentum), and a weak prior ``POSE_PRIOR |(w, u)|^2`` keeps the corrections from drifting together with the
 avatar (the world frame is the tracker's).
+
+With ``expressions`` (``Preset.refine_expressions``, ``train --refine-expressions``) each frame also gets a
+correction ``de`` of its expression coefficients, under ``EXPRESSION_PRIOR |de|^2`` (the tracker's expressions
+remain the avatar's vocabulary: the avatar is driven by the tracker's coefficients at run time): a blink the tracker
+missed or a smile it underestimated in one frame no longer has to be explained by the avatar's blendshapes.
 """
 
 from __future__ import annotations
@@ -19,7 +24,8 @@ import torch
 from torch import Tensor
 
 from ..camera import Cameras
-from ..evaluation.align import ROTATION_LR, TRANSLATION_LR, moved_camera
+from ..deform import Frame
+from ..evaluation.align import EXPRESSION_LR, EXPRESSION_PRIOR, ROTATION_LR, TRANSLATION_LR, moved_camera
 
 BETAS = (0.9, 0.999)
 EPS = 1e-8
@@ -27,14 +33,18 @@ POSE_PRIOR = 1e-3  # per unit of radians^2 and (metres x 10)^2, against the mean
 
 
 class FramePoses:
-    """Rigid corrections ``(w, u)`` of F frames' head poses, each with its own Adam step count."""
+    """Rigid corrections ``(w, u)`` of F frames' head poses and, with ``expressions`` K > 0, corrections of their
+    K expression coefficients (``wu [F, 6 + K]``), each frame with its own Adam step count."""
 
-    def __init__(self, frames: int, lr_scale: float = 0.5, device: torch.device | str = "cpu"):
-        self.wu = torch.zeros(frames, 6, device=device)
-        self.m = torch.zeros(frames, 6, device=device)
-        self.v = torch.zeros(frames, 6, device=device)
+    def __init__(self, frames: int, lr_scale: float = 0.5, device: torch.device | str = "cpu", expressions: int = 0):
+        width = 6 + expressions
+        self.expressions = expressions
+        self.wu = torch.zeros(frames, width, device=device)
+        self.m = torch.zeros(frames, width, device=device)
+        self.v = torch.zeros(frames, width, device=device)
         self.steps = torch.zeros(frames, dtype=torch.int64)
-        self.lr = torch.tensor([ROTATION_LR] * 3 + [TRANSLATION_LR] * 3, device=device) * lr_scale
+        self.lr = torch.tensor([ROTATION_LR] * 3 + [TRANSLATION_LR] * 3 + [EXPRESSION_LR] * expressions,
+                               device=device) * lr_scale
 
     def __len__(self) -> int:
         return len(self.wu)
@@ -43,13 +53,27 @@ class FramePoses:
         """(w [1, 3], u [1, 3]) of frame j, differentiable: pass them to moved_splats, then :meth:`step`."""
         wu = self.wu[j:j + 1].clone().requires_grad_(True)
         self._leaf = (j, wu)
-        return wu[:, :3], wu[:, 3:]
+        return wu[:, :3], wu[:, 3:6]
+
+    def expression(self, expression: Tensor) -> Tensor:
+        """``expression [1, K]`` of the frame last given by :meth:`motion` with its correction (differentiable);
+        unchanged without expression corrections."""
+        if not self.expressions:
+            return expression
+        return expression + self._leaf[1][:, 6:].to(expression)
+
+    def applied(self, j: int, frame: Frame) -> tuple[Frame, tuple[Tensor, Tensor]]:
+        """Frame j (``frame``, one frame) as training renders it now, not differentiable: its expressions corrected
+        and its motion (w [1, 3], u [1, 3])."""
+        wu = self.wu[j:j + 1]
+        expression = frame.expression + wu[:, 6:].to(frame.expression) if self.expressions else frame.expression
+        return Frame(expression, frame.joint_rotations, frame.eyelids), (wu[:, :3], wu[:, 3:6])
 
     def prior(self) -> Tensor:
         """The prior on the frame last given by :meth:`motion` (add it to the loss)."""
         _, wu = self._leaf
-        scaled = torch.cat([wu[:, :3], wu[:, 3:] * 10.0], -1)
-        return POSE_PRIOR * scaled.square().sum()
+        scaled = torch.cat([wu[:, :3], wu[:, 3:6] * 10.0], -1)
+        return POSE_PRIOR * scaled.square().sum() + EXPRESSION_PRIOR * wu[:, 6:].square().sum()
 
     @torch.no_grad()
     def step(self) -> None:
@@ -79,13 +103,17 @@ class FramePoses:
     def cameras(self, cams: Cameras, centres: Tensor) -> tuple[np.ndarray, np.ndarray]:
         """The F frames' cameras with their corrections folded in (``centres`` [F, 3]: each frame's head centre,
         the pivot the corrections turned about): (R [F, 3, 3], t [F, 3])."""
-        R, t = moved_camera(cams, self.wu[:, :3], self.wu[:, 3:], centres)
+        R, t = moved_camera(cams, self.wu[:, :3], self.wu[:, 3:6], centres)
         return R.cpu().numpy(), t.cpu().numpy()
 
     def summary(self) -> dict:
         """The corrections' size over the frames: median and largest rotation (degrees) and translation (mm)."""
         deg = torch.rad2deg(self.wu[:, :3].norm(dim=1)).cpu()
-        mm = (self.wu[:, 3:].norm(dim=1) * 1e3).cpu()
-        return {"frames": len(self), "rotation_deg": {"median": round(float(deg.median()), 3),
-                                                      "max": round(float(deg.max()), 3)},
-                "translation_mm": {"median": round(float(mm.median()), 3), "max": round(float(mm.max()), 3)}}
+        mm = (self.wu[:, 3:6].norm(dim=1) * 1e3).cpu()
+        out = {"frames": len(self), "rotation_deg": {"median": round(float(deg.median()), 3),
+                                                     "max": round(float(deg.max()), 3)},
+               "translation_mm": {"median": round(float(mm.median()), 3), "max": round(float(mm.max()), 3)}}
+        if self.expressions:
+            de = self.wu[:, 6:].abs().cpu()
+            out["expression"] = {"mean_abs": round(float(de.mean()), 4), "max": round(float(de.max()), 4)}
+        return out

@@ -51,6 +51,9 @@ class Preset:
     # Per-frame head poses refined with the avatar (:mod:`.poses`), from this iteration on: for tracked videos whose
     # poses are off by about a pixel (``blendsplat track``'s output; ``train --refine-poses``).
     refine_poses: bool = False
+    # ... and their expression coefficients (under a prior), with the poses: a blink or smile the tracker missed in
+    # one frame (``train --refine-expressions``)
+    refine_expressions: bool = False
     refine_poses_from: int = 500
     # Bookkeeping.
     checkpoint_every: int = 1000

@@ -50,19 +50,23 @@ def blend_weights(splats: Splats | raster.ShadedSplats, cameras: Cameras, raster
 def contribution(model: TrainableAvatar, frames: Frame, cameras: Cameras, rasterize: raster.Differentiable, *,
                  motions: Tensor | None = None, threads: int = 0) -> Tensor:
     """Per face Gaussian [N] (float64, on the model's device): :func:`blend_weights` summed over the B frames
-    (``frames``, ``cameras``: one camera per frame), one frame at a time. ``motions``: [B, 6] rigid corrections
-    (w, u) of the frames' heads (:mod:`.poses`, as training renders them), or None."""
+    (``frames``, ``cameras``: one camera per frame), one frame at a time. ``motions``: [B, 6 (+ K)] rigid
+    corrections (w, u) of the frames' heads and their expression corrections (:mod:`.poses`, as training renders
+    them), or None."""
     n = model.num_gaussians
     score = torch.zeros(n, dtype=torch.float64, device=model.means.device)
     with torch.no_grad():
         avatar = model.avatar(0, detach=True, deltas=False)  # the colours do not change the weights
     for j in range(len(frames)):
-        frame = Frame(frames.expression[j:j + 1], frames.joint_rotations[j:j + 1],
+        expression = frames.expression[j:j + 1]
+        if motions is not None and motions.shape[1] > 6:
+            expression = expression + motions[j:j + 1, 6:].to(expression)
+        frame = Frame(expression, frames.joint_rotations[j:j + 1],
                       None if frames.eyelids is None else frames.eyelids[j:j + 1])
         with torch.no_grad():
             splats = skin(avatar, model.blend(frame.expression, 0), frame)
             if motions is not None:
-                splats = moved_splats(splats, cameras.index(j), motions[j:j + 1, :3], motions[j:j + 1, 3:])
+                splats = moved_splats(splats, cameras.index(j), motions[j:j + 1, :3], motions[j:j + 1, 3:6])
         w = blend_weights(splats, cameras.index(j), rasterize, avatar.raster_mode, threads=threads)
         score += w[0, :n].to(score.dtype)
     return score

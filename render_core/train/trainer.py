@@ -410,7 +410,9 @@ class Trainer:
         self._history: list[dict] = []  # the log records written since this state began
         self._densified: list[dict] = []
         self._pruner = ContributionPruner.from_preset(cfg)
-        self._poses = FramePoses(len(self.train_idx), device=dev) if cfg.refine_poses else None
+        self._poses = (FramePoses(len(self.train_idx), device=dev,
+                                  expressions=self._frames.expression.shape[1] if cfg.refine_expressions else 0)
+                       if cfg.refine_poses or cfg.refine_expressions else None)
         if self._poses is not None and state is not None and "poses" in state:
             self._poses.load_state(state["poses"])
         self._pruned: list[dict] = [dict(p) for p in state.get("pruned", [])] if state is not None else []
@@ -536,6 +538,8 @@ class Trainer:
         times["data"] += clock() - t0
         poses = self._poses if self._poses is not None and it > cfg.refine_poses_from else None
         motion = poses.motion(j) if poses is not None else None
+        if poses is not None and poses.expressions:
+            frame = Frame(poses.expression(frame.expression), frame.joint_rotations, frame.eyelids)
         rgb, alpha, posed = forward(model, frame, cams, degree, rasterize=self.rasterize, threads=cfg.threads,
                                     times=times, clock=clock, motion=motion)
         self._strategy.step_pre_backward(it, posed)
@@ -674,15 +678,19 @@ class Trainer:
 
     def final_psnr(self) -> dict:
         """PSNR (full frame, masked target) of the model on up to ``final_eval_frames`` training frames, rendered
-        at the full SH degree (the exported avatar's) with the training rasterizer."""
+        at the full SH degree (the exported avatar's) with the training rasterizer, with the frames' pose and
+        expression corrections when training learnt them."""
         self._ensure()
         count = min(self.preset.final_eval_frames, len(self.train_idx))
         picks = np.unique(np.linspace(0, len(self.train_idx) - 1, count).round().astype(np.int64))
         out = {"frames": [], "psnr": []}
         with torch.no_grad():
             for j in picks.tolist():
-                rgb, _, _ = forward(self._model, _select(self._frames, j), self._cams.index(j), None,
-                                    rasterize=self.rasterize, threads=self.preset.threads)
+                frame, motion = _select(self._frames, j), None
+                if self._poses is not None:  # as training sees the frame
+                    frame, motion = self._poses.applied(j, frame)
+                rgb, _, _ = forward(self._model, frame, self._cams.index(j), None, rasterize=self.rasterize,
+                                    threads=self.preset.threads, motion=motion)
                 want, _ = self._targets(int(self.train_idx[j]))
                 out["frames"].append(int(self.train_idx[j]))
                 out["psnr"].append(round(psnr(rgb, want), 4))
