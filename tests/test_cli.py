@@ -159,6 +159,7 @@ def test_bench_render_times_the_reference_only_when_asked_and_says_what_it_does(
     assert "building a synthetic avatar" in caplog.text and "timing 1 frame(s)" in caplog.text
     if backend == "reference":
         return
+    assert 0 < report["ms"]["bin"] <= report["ms"]["raster"]  # native: the depth sort and binning, within raster
     caplog.clear()
     with caplog.at_level(logging.INFO, logger="render_core.tools.bench"):
         assert main([*tiny, "--reference-frames", "1"]) == 0

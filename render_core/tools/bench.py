@@ -70,7 +70,8 @@ def random_frames(avatar: Avatar, batch: int, g: torch.Generator) -> Frame:
     return Frame.from_params(avatar, expression=expression, joints=joints, eyelids=eyelids)
 
 
-STAGES = ("blend", "lbs", "shade", "deform", "raster")  # what a renderer's timings may hold, in order
+# What a renderer's timings may hold, in order; "bin" (native: depth sort and tile binning) is part of "raster"
+STAGES = ("blend", "lbs", "shade", "deform", "raster", "bin")
 
 
 def _time_frames(renderer: AvatarRenderer, cams: Cameras, frames: int, warmup: int, g: torch.Generator,
