@@ -305,3 +305,17 @@ def test_the_tracker_redetects_a_lost_face(synthetic):
     assert tracker.step(placed(frames[3], 256, 256)).source == "tracked"
     with pytest.raises(TrackingError):
         FaceTracker(detector="huge")
+
+
+def test_the_matte_dilation_is_a_square_max_filter_at_any_radius():
+    """The running-maximum dilation (time independent of the radius) equals a square max-pool, edges included."""
+    from render_core.tracking.segment import _dilated
+
+    rng = np.random.default_rng(0)
+    mask = rng.random((130, 97)) > 0.99
+    mask[0, 5] = mask[129, 96] = True  # at the edges
+    for radius in (0, 1, 4, 17, 70):
+        want = torch.nn.functional.max_pool2d(torch.from_numpy(mask.astype(np.float32))[None, None],
+                                              2 * radius + 1, stride=1, padding=radius)[0, 0].numpy() > 0.5
+        got = _dilated(mask, radius)
+        assert got.dtype == bool and np.array_equal(got, want), radius

@@ -41,12 +41,11 @@ def person_probability(rgb: np.ndarray) -> np.ndarray:
 
 
 def mesh_silhouette(vertices: np.ndarray, faces: np.ndarray, K: np.ndarray, width: int, height: int,
-                    max_side: int = SIZE) -> np.ndarray:
+                    max_side: int = SIZE // 2) -> np.ndarray:
     """``[height, width]`` bool: the pixels that a triangle of the mesh (``vertices [V, 3]`` in camera coordinates,
     in front of it; ``faces [F, 3]``) overlaps, seen through the intrinsics ``K [3, 3]``. Drawn at most
     ``max_side`` pixels on the long side and scaled up (a coarse mask: :func:`head_matte` grows it by a margin),
-    each triangle sampled on a barycentric grid about a pixel apart (triangles grouped by their subdivision);
-    about 10 ms a frame."""
+    each triangle sampled on a barycentric grid about a pixel apart (triangles grouped by their subdivision)."""
     scale = min(1.0, max_side / max(width, height))
     w, h = max(1, round(width * scale)), max(1, round(height * scale))
     uv = vertices @ K.T
@@ -69,12 +68,42 @@ def mesh_silhouette(vertices: np.ndarray, faces: np.ndarray, K: np.ndarray, widt
     return mask[0, 0].numpy() > 0.5
 
 
+def _max_filter(a: np.ndarray, radius: int, axis: int) -> np.ndarray:
+    """The running maximum of ``a`` over windows of ``2 radius + 1`` along ``axis`` (zero beyond the edges), in
+    time independent of the radius (van Herk / Gil-Werman: per block of the window's length, prefix and suffix
+    maxima; a window spans at most two blocks)."""
+    w = 2 * radius + 1
+    a = np.moveaxis(a, axis, -1)
+    n = a.shape[-1]
+    length = -(-(n + 2 * radius) // w) * w
+    padded = np.zeros(a.shape[:-1] + (length,), a.dtype)
+    padded[..., radius:radius + n] = a
+    blocks = padded.reshape(a.shape[:-1] + (length // w, w))
+    prefix = np.maximum.accumulate(blocks, axis=-1).reshape(padded.shape)
+    suffix = np.maximum.accumulate(blocks[..., ::-1], axis=-1)[..., ::-1].reshape(padded.shape)
+    return np.moveaxis(np.maximum(suffix[..., :n], prefix[..., w - 1:w - 1 + n]), -1, axis)
+
+
 def _dilated(mask: np.ndarray, radius: int) -> np.ndarray:
-    """``mask [H, W]`` grown by ``radius`` pixels (a square neighbourhood)."""
+    """``mask [H, W]`` (bool) grown by ``radius`` pixels (a square neighbourhood: two separable running maxima)."""
     if radius <= 0:
         return mask
-    t = torch.from_numpy(mask.astype(np.float32))[None, None]
-    return F.max_pool2d(t, 2 * radius + 1, stride=1, padding=radius)[0, 0].numpy() > 0.5
+    return _max_filter(_max_filter(mask.view(np.uint8), radius, 0), radius, 1).view(bool)
+
+
+def _grown(mask: np.ndarray, radii: list[int], max_side: int = SIZE // 2) -> list[np.ndarray]:
+    """``mask [H, W]`` grown by each radius, computed on a grid of at most ``max_side`` cells a side (a cell is set
+    when any of its pixels is): the margins come out up to a cell wider, never narrower."""
+    H, W = mask.shape
+    s = max(1, -(-max(H, W) // max_side))
+    if s == 1:
+        return [_dilated(mask, r) for r in radii]
+    h, w = -(-H // s), -(-W // s)
+    padded = np.zeros((h * s, w * s), bool)
+    padded[:H, :W] = mask
+    coarse = padded.reshape(h, s, w, s).any(axis=(1, 3))
+    rows, cols = np.arange(H) // s, np.arange(W) // s
+    return [_dilated(coarse, -(-r // s))[rows[:, None], cols[None, :]] for r in radii]
 
 
 def head_matte(prob: np.ndarray, landmarks: np.ndarray, neck: float = 0.2, side: float = 0.9,
@@ -101,6 +130,6 @@ def head_matte(prob: np.ndarray, landmarks: np.ndarray, neck: float = 0.2, side:
     if silhouette is not None:
         eyes = (float(v[list(OUTER_EYE_CORNERS)].mean()) - chin_v) / height  # the eye line, as pv measures it
         radii = [round(r * height) for r in (*hair, neck_margin)]
-        zone = np.where(pv < eyes, 0, np.where(pv < 0, 1, 2))
-        keep *= np.choose(zone, [_dilated(silhouette, r) for r in radii])
+        above, beside, below = _grown(silhouette, radii)
+        keep *= np.where(pv < eyes, above, np.where(pv < 0, beside, below))
     return (prob * keep).astype(np.float32, copy=False)
