@@ -793,6 +793,22 @@ def _free_port(kind: int) -> int:
         return s.getsockname()[1]
 
 
+def _free_udp_and_tcp_port() -> int:
+    """A port free for both UDP and TCP on 127.0.0.1 (coturn listens on both at its listening port): a free UDP
+    port whose TCP twin another process may hold is tried again."""
+    import socket
+
+    for _ in range(50):
+        port = _free_port(socket.SOCK_DGRAM)
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+            try:
+                s.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+        return port
+    raise RuntimeError("no port free for both UDP and TCP")
+
+
 def _self_signed(folder: Path) -> None:
     """tls.crt and tls.key (what a kubernetes.io/tls Secret holds) for 127.0.0.1."""
     import datetime
@@ -839,7 +855,9 @@ def test_turn_arguments_run_with_coturn_and_relay_with_the_services_credentials(
     low, high = int(args["min-port"]), int(args["max-port"])
     tls_path = next(m["mountPath"] for m in coturn["volumeMounts"] if m["name"] == "tls").rstrip("/")
     _self_signed(tmp_path / "tls")
-    plain, tls, secret = _free_port(2), _free_port(1), "deploy-test-secret"  # SOCK_DGRAM, SOCK_STREAM
+    plain, tls, secret = _free_udp_and_tcp_port(), _free_udp_and_tcp_port(), "deploy-test-secret"
+    while tls == plain:  # coturn also listens on both at its TLS port (TLS over TCP, DTLS over UDP)
+        tls = _free_udp_and_tcp_port()
     local = {"listening-port": plain, "tls-listening-port": tls, "relay-ip": "127.0.0.1",
              "static-auth-secret": secret}
     argv = [binary, "--listening-ip=127.0.0.1"]
