@@ -264,6 +264,12 @@ def test_train_cli_writes_a_bundle_and_its_workdir(tmp_path, head, capsys, monke
     for name in ("log.jsonl", "summary.json", "report.json", "contact_sheet.png", "curves.png"):
         assert (work / name).is_file(), name
     assert {"psnr", "ssim", "psnr_head", "frames"} <= set(summary["eval"])
+    assert summary["poses"] is None  # no per-frame corrections unless asked for
+    refined = tmp_path / "b.bundle"
+    assert main(["train", str(tmp_path / "ds"), "--out", str(refined), "--iterations", "2", "--gaussians", "500",
+                 "--refine-expressions", "--quiet"]) == 0
+    poses = json.loads(capsys.readouterr().out)["poses"]  # --refine-expressions brings the pose corrections too
+    assert poses["frames"] == 4 and {"rotation_deg", "translation_mm", "expression"} <= set(poses)
 
 
 def test_bundle_convert_rewrites_a_schema_1_bundle_as_schema_2_with_the_same_content(tmp_path, capsys):
