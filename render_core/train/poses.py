@@ -32,6 +32,13 @@ EPS = 1e-8
 POSE_PRIOR = 1e-3  # per unit of radians^2 and (metres x 10)^2, against the mean L1 image residual
 
 
+def corrected(frame: Frame, row: Tensor) -> tuple[Frame, tuple[Tensor, Tensor]]:
+    """One frame with its correction ``row [1, 6 (+ K)]`` (a row of :attr:`FramePoses.wu`): the frame with its
+    expressions corrected (when the row has them) and its motion (w [1, 3], u [1, 3]) for moved_splats."""
+    expression = frame.expression + row[:, 6:].to(frame.expression) if row.shape[1] > 6 else frame.expression
+    return Frame(expression, frame.joint_rotations, frame.eyelids), (row[:, :3], row[:, 3:6])
+
+
 class FramePoses:
     """Rigid corrections ``(w, u)`` of F frames' head poses and, with ``expressions`` K > 0, corrections of their
     K expression coefficients (``wu [F, 6 + K]``), each frame with its own Adam step count."""
@@ -63,11 +70,8 @@ class FramePoses:
         return expression + self._leaf[1][:, 6:].to(expression)
 
     def applied(self, j: int, frame: Frame) -> tuple[Frame, tuple[Tensor, Tensor]]:
-        """Frame j (``frame``, one frame) as training renders it now, not differentiable: its expressions corrected
-        and its motion (w [1, 3], u [1, 3])."""
-        wu = self.wu[j:j + 1]
-        expression = frame.expression + wu[:, 6:].to(frame.expression) if self.expressions else frame.expression
-        return Frame(expression, frame.joint_rotations, frame.eyelids), (wu[:, :3], wu[:, 3:6])
+        """Frame j (``frame``, one frame) as training renders it now, not differentiable (:func:`corrected`)."""
+        return corrected(frame, self.wu[j:j + 1])
 
     def prior(self) -> Tensor:
         """The prior on the frame last given by :meth:`motion` (add it to the loss)."""

@@ -31,6 +31,7 @@ from ..deform import Frame, Splats, skin
 from ..evaluation.align import moved_splats
 from .densify import DensifyStrategy, reindex
 from .model import TrainableAvatar
+from .poses import corrected
 from .presets import Preset
 
 
@@ -58,15 +59,14 @@ def contribution(model: TrainableAvatar, frames: Frame, cameras: Cameras, raster
     with torch.no_grad():
         avatar = model.avatar(0, detach=True, deltas=False)  # the colours do not change the weights
     for j in range(len(frames)):
-        expression = frames.expression[j:j + 1]
-        if motions is not None and motions.shape[1] > 6:
-            expression = expression + motions[j:j + 1, 6:].to(expression)
-        frame = Frame(expression, frames.joint_rotations[j:j + 1],
-                      None if frames.eyelids is None else frames.eyelids[j:j + 1])
+        frame, motion = Frame(frames.expression[j:j + 1], frames.joint_rotations[j:j + 1],
+                              None if frames.eyelids is None else frames.eyelids[j:j + 1]), None
+        if motions is not None:
+            frame, motion = corrected(frame, motions[j:j + 1])
         with torch.no_grad():
             splats = skin(avatar, model.blend(frame.expression, 0), frame)
-            if motions is not None:
-                splats = moved_splats(splats, cameras.index(j), motions[j:j + 1, :3], motions[j:j + 1, 3:6])
+            if motion is not None:
+                splats = moved_splats(splats, cameras.index(j), *motion)
         w = blend_weights(splats, cameras.index(j), rasterize, avatar.raster_mode, threads=threads)
         score += w[0, :n].to(score.dtype)
     return score
@@ -128,8 +128,8 @@ class ContributionPruner:
               frames: Frame, cameras: Cameras, rasterize: raster.Differentiable, *, motions: Tensor | None = None,
               threads: int = 0) -> dict:
         """Score the face Gaussians on the sample of the training ``frames`` (``cameras``: one per frame;
-        ``motions``: their [F, 6] head corrections, or None) and remove this step's share; the counts of
-        :func:`prune_lowest` and ``frames`` (how many were scored)."""
+        ``motions``: their [F, 6 (+ K)] corrections, :attr:`.poses.FramePoses.wu`, or None) and remove this step's
+        share; the counts of :func:`prune_lowest` and ``frames`` (how many were scored)."""
         pick = torch.from_numpy(self.sample(len(frames))).to(frames.expression.device)
         sub = Frame(frames.expression[pick], frames.joint_rotations[pick],
                     None if frames.eyelids is None else frames.eyelids[pick])
