@@ -26,7 +26,6 @@ from render_core.avatar import Avatar
 from render_core.camera import Cameras, calibration_problem
 from render_core.deform import ROTATION_TOL, Frame
 from render_core.drive import calibrated_camera, default_camera, orbit_camera, preset_camera
-from render_core.rotation import axis_angle_to_matrix, rot6d_to_matrix
 
 from .errors import InvalidArgument, ResourceExhausted, some
 
@@ -144,19 +143,18 @@ def background(color: pb.Color | None, default: torch.Tensor | None = None, fiel
     values = [color.r, color.g, color.b]
     if not all(math.isfinite(v) and 0.0 <= v <= 1.0 for v in values):
         raise InvalidArgument(f"colour components must be in [0, 1], got {values}", field=field)
-    return torch.tensor(values)
+    return torch.from_numpy(np.array(values, np.float32))
 
 
 _NOT_A_ROTATION = ("not a rotation: 6D needs two non-zero, non-parallel 3-vectors (the first two rows of the matrix); "
                    "axis-angle an angle in radians of moderate size")
-_EYE64 = np.eye(3)
+_EYE64, _EYE32 = np.eye(3), np.eye(3, dtype=np.float32)
 
 
-def _rotations_ok(m: torch.Tensor) -> np.ndarray:
+def _rotations_ok(m: np.ndarray) -> np.ndarray:
     """[n] bool: which of the [n, 3, 3] matrices are rotations, checked in float64 as Frame.check does: finite,
-    orthonormal to ROTATION_TOL (max |M M^T - I|), determinant above 1 - ROTATION_TOL (numpy: on a few 3x3
-    matrices a fraction of torch's cost)."""
-    md = m.numpy().astype(np.float64)
+    orthonormal to ROTATION_TOL (max |M M^T - I|), determinant above 1 - ROTATION_TOL."""
+    md = m.astype(np.float64)
     ok = np.isfinite(md).all(axis=(1, 2))
     if not ok.all():
         md = np.where(ok[:, None, None], md, 0.0)  # the zero matrix fails below, without NaN warnings
@@ -165,7 +163,33 @@ def _rotations_ok(m: torch.Tensor) -> np.ndarray:
     return ok
 
 
-def _joint_rotations(avatar: Avatar, joints: Mapping[str, pb.Rotation]) -> tuple[list[int], torch.Tensor | None]:
+# A pose is built on the event loop with numpy, not torch. Most torch calls release the GIL and must take it back,
+# and taking it back waits for the switch interval (5 ms) whenever another Python thread runs (an encoder lane,
+# aiortc, the gRPC threads): render_core's torch Rodrigues, 0.25 ms alone, took 8.7 ms a call beside one busy
+# thread and 27 ms beside two; numpy on a few values keeps the GIL. The formulas are render_core.rotation's.
+def _axis_angle_np(aa: np.ndarray) -> np.ndarray:
+    """[n, 3] float32 axis-angle -> [n, 3, 3] float32 rotation matrices (Rodrigues; exact identity at zero)."""
+    theta2 = (aa * aa).sum(-1)[:, None, None]
+    theta = np.sqrt(np.maximum(theta2, 1e-24))
+    small = theta2 < 1e-8
+    a = np.where(small, 1.0 - theta2 / 6.0, np.sin(theta) / theta)
+    b = np.where(small, 0.5 - theta2 / 24.0, (1.0 - np.cos(theta)) / np.maximum(theta2, 1e-24))
+    x, y, z = aa[:, 0], aa[:, 1], aa[:, 2]
+    zero = np.zeros_like(x)
+    k = np.stack([zero, -z, y, z, zero, -x, -y, x, zero], axis=-1).reshape(-1, 3, 3)
+    return _EYE32 + a * k + b * (k @ k)
+
+
+def _rot6d_np(r6: np.ndarray) -> np.ndarray:
+    """[n, 6] float32 6D (the matrix's first two rows) -> [n, 3, 3] float32 rotation matrices, by Gram-Schmidt."""
+    a1, a2 = r6[:, :3], r6[:, 3:]
+    b1 = a1 / np.maximum(np.linalg.norm(a1, axis=-1, keepdims=True), 1e-12)
+    a2 = a2 - (b1 * a2).sum(-1, keepdims=True) * b1
+    b2 = a2 / np.maximum(np.linalg.norm(a2, axis=-1, keepdims=True), 1e-12)
+    return np.stack([b1, b2, np.cross(b1, b2)], axis=-2)
+
+
+def _joint_rotations(avatar: Avatar, joints: Mapping[str, pb.Rotation]) -> tuple[list[int], np.ndarray | None]:
     """The joints of a FrameParams message (``joints``: its map of name -> Rotation) as (joint indices, [n, 3, 3]
     float32 rotation matrices), each from 3 (axis-angle) or 6 (6D) finite values and checked as the frame checks
     every joint (orthonormal to 1e-3, determinant +1); errors name ``joints.<name>`` (``joints`` for an unknown
@@ -189,11 +213,12 @@ def _joint_rotations(avatar: Avatar, joints: Mapping[str, pb.Rotation]) -> tuple
         rows[len(values) == 6].append((len(names), values))
         names.append(name)
     matrices, at = [], []
-    for group, convert in zip(rows, (axis_angle_to_matrix, rot6d_to_matrix), strict=True):
+    for group, convert in zip(rows, (_axis_angle_np, _rot6d_np), strict=True):
         if group:
             at += [i for i, _ in group]
-            matrices.append(convert(torch.tensor([v for _, v in group], dtype=torch.float32)))
-    m = torch.cat(matrices) if matrices else None
+            with np.errstate(all="ignore"):  # huge values give inf/NaN matrices, refused just below
+                matrices.append(convert(np.array([v for _, v in group], np.float32)))
+    m = np.concatenate(matrices) if matrices else None
     if m is not None:
         ok = _rotations_ok(m)
         if not ok.all():
@@ -204,9 +229,9 @@ def _joint_rotations(avatar: Avatar, joints: Mapping[str, pb.Rotation]) -> tuple
     return [avatar.joint_names.index(names[i]) for i in at], m
 
 
-def _coefficients(avatar: Avatar, params: pb.FrameParams, order: list[str]) -> torch.Tensor:
-    """[1, K] coefficients by position (in ``order``) or by name; the wire field named on every problem."""
-    out = torch.zeros(1, avatar.num_expressions)
+def _coefficients(avatar: Avatar, params: pb.FrameParams, order: list[str]) -> np.ndarray:
+    """[1, K] float32 coefficients by position (in ``order``) or by name; the wire field named on every problem."""
+    out = np.zeros((1, avatar.num_expressions), np.float32)
     if params.coefficients and params.named_coefficients:
         raise InvalidArgument("give coefficients by position or by name, not both", field="coefficients")
     if params.coefficients:
@@ -218,9 +243,9 @@ def _coefficients(avatar: Avatar, params: pb.FrameParams, order: list[str]) -> t
         if not all(map(math.isfinite, values)):
             raise InvalidArgument("values must be finite (no NaN or Infinity)", field="coefficients")
         if order is avatar.expression_names or order == avatar.expression_names:
-            out[0] = torch.tensor(values)
+            out[0] = values
         else:
-            out[0, [avatar.expression_names.index(n) for n in order]] = torch.tensor(values)
+            out[0, [avatar.expression_names.index(n) for n in order]] = values
     elif params.named_coefficients:
         index = {n: i for i, n in enumerate(avatar.expression_names)}
         unknown = [n for n in params.named_coefficients if n not in index]
@@ -234,9 +259,10 @@ def _coefficients(avatar: Avatar, params: pb.FrameParams, order: list[str]) -> t
 
 def frame(avatar: Avatar, params: pb.FrameParams, order: list[str]) -> Frame:
     """One frame (batch of 1) from a FrameParams message; ``order`` maps positional coefficients to names. Built
-    directly from the message, each part checked as it is read (errors name the wire's field)."""
+    directly from the message, each part checked as it is read (errors name the wire's field), in numpy (see
+    :func:`_axis_angle_np`: no torch call that gives the GIL up)."""
     expression = _coefficients(avatar, params, order)
-    rotations = torch.eye(3).expand(1, avatar.num_joints, 3, 3).clone()
+    rotations = np.tile(np.eye(3, dtype=np.float32), (1, avatar.num_joints, 1, 1))
     joints, matrices = _joint_rotations(avatar, params.joints)
     if joints:
         rotations[0, joints] = matrices
@@ -247,8 +273,8 @@ def frame(avatar: Avatar, params: pb.FrameParams, order: list[str]) -> Frame:
             raise InvalidArgument(f"expected 2 values (left, right), got {len(values)}", field="eyelids")
         if not all(map(math.isfinite, values)):
             raise InvalidArgument("values must be finite (no NaN or Infinity)", field="eyelids")
-        eyelids = torch.tensor([values])
-    return Frame(expression, rotations, eyelids)
+        eyelids = torch.from_numpy(np.array([values], np.float32))
+    return Frame(torch.from_numpy(expression), torch.from_numpy(rotations), eyelids)
 
 
 # ------------------------------------------------------------------------------------------- per-frame budget

@@ -108,9 +108,8 @@ def test_a_camera_is_parsed_without_a_frame(avatar, monkeypatch):
 
 # ------------------------------------------------------------------------------- joints: one batched call per kind
 def _joint_by_joint(avatar, msg):
-    """The joints of ``msg`` as service.params built them before they were batched: each joint's own tensor,
+    """The joints of ``msg`` as service.params built them before they were batched: each joint's own array,
     conversion and float64 check, in the message's order, the first problem raised (the reference)."""
-    from render_core.rotation import axis_angle_to_matrix, rot6d_to_matrix
     from service.errors import some
 
     rotations = torch.eye(3).expand(1, avatar.num_joints, 3, 3).clone()
@@ -123,8 +122,9 @@ def _joint_by_joint(avatar, msg):
             raise InvalidArgument(f"expected axis-angle (3 values) or 6D (6 values), got {len(values)}", field=field)
         if not all(math.isfinite(v) for v in values):
             raise InvalidArgument("values must be finite (no NaN or Infinity)", field=field)
-        v = torch.tensor(values, dtype=torch.float32)
-        m = axis_angle_to_matrix(v) if len(values) == 3 else rot6d_to_matrix(v)
+        v = np.array([values], np.float32)
+        with np.errstate(all="ignore"):
+            m = torch.from_numpy(params._axis_angle_np(v) if len(values) == 3 else params._rot6d_np(v))[0]
         md = m.double()
         ok = bool(torch.isfinite(md).all())
         ok = ok and float((md @ md.T - torch.eye(3, dtype=torch.float64)).abs().max()) <= 1e-3
@@ -181,6 +181,49 @@ def test_batched_joints_are_bit_identical_to_joint_by_joint_and_fail_alike(avata
     assert frames > 150 and errors > 150
 
 
+def test_the_pose_conversions_are_render_core_rotations_to_float32_rounding():
+    """The service converts a pose's joints with numpy (no torch call on the event loop, see params._axis_angle_np);
+    the matrices are render_core.rotation's (torch) to a few float32 ulps, small angles exactly identity-close."""
+    from render_core.rotation import axis_angle_to_matrix, rot6d_to_matrix
+
+    rng = np.random.default_rng(3)
+    for scale in (1e-6, 1e-3, 0.1, 1.0, 3.0):
+        aa = (rng.uniform(-1, 1, (2000, 3)) * scale).astype(np.float32)
+        got = params._axis_angle_np(aa)
+        assert got.dtype == np.float32
+        np.testing.assert_allclose(got, axis_angle_to_matrix(torch.from_numpy(aa)).numpy(), rtol=0, atol=1e-6)
+    r6 = rng.normal(0, 1, (2000, 6)).astype(np.float32)
+    got = params._rot6d_np(r6)
+    assert got.dtype == np.float32
+    np.testing.assert_allclose(got, rot6d_to_matrix(torch.from_numpy(r6)).numpy(), rtol=0, atol=2e-5)
+
+
+def test_a_pose_is_built_without_torch_calls_that_give_up_the_gil(avatar, monkeypatch):
+    """Building a frame from a message (coefficients, joints of both kinds, eyelids, a background) calls no torch
+    function but torch.from_numpy: most torch calls release the GIL and wait up to the switch interval (5 ms) to get
+    it back while another Python thread runs, which stalls the event loop that builds every pose."""
+    import sys
+
+    calls = []
+
+    def hook(frame, event, arg):
+        if event == "c_call" and (getattr(arg, "__module__", None) or "").startswith("torch") \
+                or event == "c_call" and type(getattr(arg, "__self__", None)).__module__.startswith("torch"):
+            calls.append(getattr(arg, "__qualname__", getattr(arg, "__name__", repr(arg))))
+
+    msg = pb.FrameParams(coefficients=[0.1] * avatar.num_expressions, eyelids=[0.2, 0.3], joints={
+        avatar.joint_names[1]: pb.Rotation(values=[0.1, 0.2, 0.0]),
+        avatar.joint_names[2]: pb.Rotation(values=[1.0, 0.0, 0.0, 0.0, 1.0, 0.0])})
+    sys.setprofile(hook)
+    try:
+        frame = params.frame(avatar, msg, list(avatar.expression_names))
+        background = params.background(pb.Color(r=0.5, g=0.5, b=0.5))
+    finally:
+        sys.setprofile(None)
+    assert frame.joint_rotations.dtype == torch.float32 and background.dtype == torch.float32
+    assert calls and {c.rsplit(".", 1)[-1] for c in calls} == {"from_numpy"}, calls
+
+
 def test_a_problem_names_the_first_joint_in_the_message_order(avatar):
     """The batch groups the axis-angle joints before the 6D ones; the error still names the first joint of the
     message with a problem, of whichever kind, and a problem found before the batch (an unknown name, the wrong
@@ -209,13 +252,13 @@ def test_joints_are_converted_and_checked_once_per_kind_not_per_joint(avatar, mo
             return fn(x)
         return wrapper
 
-    monkeypatch.setattr(params, "axis_angle_to_matrix", counted(params.axis_angle_to_matrix))
-    monkeypatch.setattr(params, "rot6d_to_matrix", counted(params.rot6d_to_matrix))
+    monkeypatch.setattr(params, "_axis_angle_np", counted(params._axis_angle_np))
+    monkeypatch.setattr(params, "_rot6d_np", counted(params._rot6d_np))
     joints = {"root": [0.1, 0, 0], "neck": [0, 0.2, 0], "jaw": [1, 0, 0, 0, 1, 0], "eye_l": [0, 0, 0.1],
               "eye_r": [0, 1, 0, -1, 0, 0]}
     frame = params.frame(avatar, pb.FrameParams(joints={n: pb.Rotation(values=v) for n, v in joints.items()}),
                          list(avatar.expression_names))
-    assert sorted(calls) == [("axis_angle_to_matrix", (3, 3)), ("rot6d_to_matrix", (2, 6))]
+    assert sorted(calls) == [("_axis_angle_np", (3, 3)), ("_rot6d_np", (2, 6))]
     frame.check(avatar)
     calls.clear()
     params.frame(avatar, pb.FrameParams(), list(avatar.expression_names))
