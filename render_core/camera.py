@@ -12,6 +12,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from . import host
 from .errors import FrameError
 
 
@@ -34,7 +35,7 @@ class Cameras:
         for name, t, shape in (("K", self.K, (b, 3, 3)), ("R", self.R, (b, 3, 3)), ("t", self.t, (b, 3))):
             if tuple(t.shape) != shape:
                 raise FrameError(f"expected shape {list(shape)}, got {list(t.shape)}", field=f"camera.{name}")
-            if not torch.isfinite(t).all():
+            if not host.finite(t):
                 raise FrameError("must be finite", field=f"camera.{name}")
         if self.width < 1 or self.height < 1:
             raise FrameError(f"image size must be positive, got {self.width}x{self.height}", field="camera")
@@ -73,8 +74,8 @@ class Cameras:
         sizes = {(c.width, c.height) for c in cams}
         if len(sizes) != 1:
             raise FrameError(f"cameras of one batch must share an image size, got {sorted(sizes)}", field="camera")
-        return Cameras(torch.cat([c.K for c in cams]), torch.cat([c.R for c in cams]),
-                       torch.cat([c.t for c in cams]), cams[0].width, cams[0].height)
+        return Cameras(host.cat([c.K for c in cams]), host.cat([c.R for c in cams]),
+                       host.cat([c.t for c in cams]), cams[0].width, cams[0].height)
 
     def to_dict(self, i: int = 0) -> dict[str, Any]:
         return {

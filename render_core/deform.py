@@ -20,9 +20,11 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
 import torch
 from torch import Tensor
 
+from . import host
 from .avatar import Avatar, Gaussians
 from .errors import FrameError, ShapeError
 from .packed import SparseDeltas
@@ -217,14 +219,14 @@ class Frame:
         eyelids = None
         if any(f.eyelids is not None for f in frames):
             ref = frames[0].expression
-            eyelids = torch.cat([
+            eyelids = host.cat([
                 f.eyelids if f.eyelids is not None
-                else torch.zeros(f.batch_size, 2, dtype=ref.dtype, device=ref.device)
+                else host.zeros((f.batch_size, 2), like=ref)
                 for f in frames
             ])
         return Frame(
-            expression=torch.cat([f.expression for f in frames]),
-            joint_rotations=torch.cat([f.joint_rotations for f in frames]),
+            expression=host.cat([f.expression for f in frames]),
+            joint_rotations=host.cat([f.joint_rotations for f in frames]),
             eyelids=eyelids,
         )
 
@@ -261,16 +263,15 @@ class Frame:
             raise FrameError(f"expected shape [{b}, 2] (left, right), got {list(self.eyelids.shape)}",
                              field="eyelids")
         for field, t in (("expression", e), ("joint_rotations", r), ("eyelids", self.eyelids)):
-            if t is not None and not bool(torch.isfinite(t).all()):
+            if t is not None and not host.finite(t):
                 raise FrameError("contains non-finite values (NaN or inf)", field=field)
-        if b and j:
-            rd = r.detach().to(torch.float64)
-            err = (rd @ rd.transpose(-1, -2) - torch.eye(3, dtype=torch.float64, device=rd.device)).abs()
-            per_joint = err.amax(dim=(0, 2, 3))
-            det = torch.linalg.det(rd).amin(dim=0)
+        if b and j:  # on the host, in numpy (render_core.host: a render thread's checks keep the GIL)
+            rd = host.array(r, np.float64)
+            per_joint = np.abs(rd @ rd.swapaxes(-1, -2) - np.eye(3)).max(axis=(0, 2, 3))
+            det = np.linalg.det(rd).min(axis=0)
             bad_mask = (per_joint > ROTATION_TOL) | (det < 1 - ROTATION_TOL)
-            if bool(bad_mask.any()):
-                bad = [avatar.joint_names[i] for i in bad_mask.nonzero().flatten().tolist()]
+            if bad_mask.any():
+                bad = [avatar.joint_names[i] for i in np.flatnonzero(bad_mask).tolist()]
                 raise FrameError(f"not rotation matrices for joint(s) {_list(bad)}", field="joint_rotations")
 
 

@@ -61,6 +61,7 @@ from typing import Any
 import torch
 
 from blendsplat.v1 import render_pb2 as pb
+from render_core import host
 from render_core.avatar import Avatar
 from render_core.camera import Cameras
 from render_core.deform import Frame
@@ -907,7 +908,7 @@ def _render(entry: Loaded, jobs: list[Job], encoders: list[Encoder], encode: boo
     cameras = Cameras.cat([j.camera for j in jobs])
     # 8-bit RGBA as the encoders take it (the native renderer writes it from its compositing loop)
     schedule = Schedule.baseline() if any(j.reference for j in jobs) else None  # None: the renderer's own
-    images, timings = entry.renderer.render_rgba8(frames, cameras, torch.stack([j.background for j in jobs]),
+    images, timings = entry.renderer.render_rgba8(frames, cameras, host.stack([j.background for j in jobs]),
                                                   schedule=schedule)
     rendered = [Unencoded(image, timings, len(jobs)) for image in images]
     if not encode:

@@ -26,7 +26,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .. import packed
+from .. import host, packed
 from ..avatar import PRECISIONS as AVATAR_PRECISIONS
 from ..avatar import Avatar, check_raster_mode, sh_coeff_count
 from ..camera import Cameras
@@ -135,14 +135,15 @@ def verified_fastest_path() -> str:
     return "scalar"
 
 
-def _np(t: Tensor, dtype=torch.float32) -> np.ndarray:
-    """A contiguous CPU numpy view (a copy only when the tensor is not already float32, CPU and contiguous)."""
-    return t.detach().to(device="cpu", dtype=dtype).contiguous().numpy()
+def _np(t: Tensor) -> np.ndarray:
+    """A contiguous CPU float32 numpy view (a copy only when the tensor is not already float32, CPU and
+    contiguous; without a torch call that gives the GIL up: render_core.host)."""
+    return host.array(t, np.float32)
 
 
 def _check_finite(**tensors: Tensor | None) -> None:
     for name, t in tensors.items():
-        if t is not None and not torch.isfinite(t).all():
+        if t is not None and not host.finite(t):
             raise ShapeError("must be finite (no NaN or Inf)", field=name)
 
 
@@ -382,12 +383,11 @@ class NativeAvatar:
         b = expression.shape[0]
         if len(cameras) != b:
             raise ShapeError(f"{b} frames need {b} cameras, got {len(cameras)}", field="cameras")
-        if eyelids is None:
-            eyelids = torch.zeros(b, 2)
         _check_finite(expression=expression, joint_rotations=joint_rotations, eyelids=eyelids, background=background)
         _check_cameras(cameras)
         K, R, t = _camera_arrays(cameras)
-        return (_np(expression), _np(joint_rotations), _np(eyelids), K, R, t, cameras.width, cameras.height,
+        lids = np.zeros((b, 2), np.float32) if eyelids is None else _np(eyelids)
+        return (_np(expression), _np(joint_rotations), lids, K, R, t, cameras.width, cameras.height,
                 self.avatar.raster_mode == "antialiased", _background(background, b))
 
 
