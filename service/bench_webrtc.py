@@ -18,7 +18,7 @@ channel errors, refused or failed sessions, missing frames are not errors), psnr
 bitstream's bytes per second per stream), jpeg_bytes_per_second, and the server's per-frame timings, p50 unless
 named (``server_ms``): render_p50 (blend + lbs + raster: one batched render call), render_per_frame_p50 (that
 divided by the frames in its batch; batch_mean), the video encoder's encode_p50 and encode_p99 (wall time of its
-call for one frame: RGBA to YUV, the codec, RTP packetisation) and encode_cpu_p50 (that call's CPU time: the
+call for one frame: the codec and RTP packetisation of a 4:2:0 frame) and encode_cpu_p50 (that call's CPU time: the
 encode cost per frame and stream), send_p50 (handed to the encoder to its RTP packets sent) and total_p50 (pose
 received to its packets sent).
 """

@@ -166,9 +166,9 @@ class Session:
         self.input_done = False
         self.closed = False
         self.release_slot = no_release  # the key's stream slot (Engine.open sets it)
-        # A transport that takes its frames itself (WebRTC's video track) sets this: each frame is then handed to it
-        # on the loop as it is delivered, a RenderedFrame without data plus the pixels as the encoder made them, not
-        # queued for responses() (which keeps errors and the final status). It must not raise.
+        # A transport that takes its frames itself (WebRTC's video track) sets this (sink_frames): each frame is then
+        # handed to it on the loop as it is delivered, a RenderedFrame without data plus the pixels as the encoder
+        # made them, not queued for responses() (which keeps errors and the final status). It must not raise.
         self.frame_sink: Callable[[pb.RenderedFrame, bytes], None] | None = None
         self._replies: asyncio.Queue[pb.StreamResponse | None] = asyncio.Queue()
         self._queued_errors = 0
@@ -238,6 +238,14 @@ class Session:
         self.input_done = True
         self._maybe_finish()
 
+    def sink_frames(self, sink: Callable[[pb.RenderedFrame, bytes], None], yuv420: bool = False) -> None:
+        """Hand each rendered frame to ``sink`` (see ``frame_sink``) instead of queueing it for :meth:`responses`;
+        with ``yuv420`` as the 4:2:0 planes a video encoder takes (``raw_i420``: Y, U, V, unpadded, converted on the
+        encode threads) instead of the session's codec. Before the first frame."""
+        if yuv420:
+            self.encoder = make_encoder("raw_i420", self.out.width, self.out.height)
+        self.frame_sink = sink
+
     # ---------------------------------------------------------------------------------------- for the engine
     @property
     def ready(self) -> bool:
@@ -260,8 +268,8 @@ class Session:
         else:
             self.sent += 1
             m = self.engine.metrics
-            m.frames.labels(self.out.codec).inc()
-            m.frame_bytes.labels(self.out.codec).inc(len(result.data))
+            m.frames.labels(self.encoder.codec).inc()
+            m.frame_bytes.labels(self.encoder.codec).inc(len(result.data))
             fields = {"index": job.index, "client_time_us": job.client_time_us, "codec": self.out.codec_enum,
                       "width": self.out.width, "height": self.out.height, "timings": result.timings,
                       "dropped": self.dropped}

@@ -53,6 +53,24 @@ def test_media_types():
             assert (enc.codec, enc.media_type) == (codec, media)
 
 
+@pytest.mark.parametrize("h, w", [(48, 64), (33, 17), (1, 1)])
+def test_raw_i420_is_the_4_2_0_conversion_of_the_frame_in_y_u_v_order_and_no_stream_codec(h, w):
+    """The frame format the WebRTC track takes: make_encoder makes it, but it is no codec of the API."""
+    from render_core.media.pixels import rgba8_to_i420
+
+    img = smooth(h, w)
+    ch, cw = (h + 1) // 2, (w + 1) // 2
+    planes = [np.zeros((h, w), np.uint8), np.zeros((ch, cw), np.uint8), np.zeros((ch, cw), np.uint8)]
+    rgba8_to_i420(img, *planes)
+    with make_encoder("raw_i420", w, h) as enc:
+        assert (enc.codec, enc.media_type) == ("raw_i420", "application/octet-stream")
+        data = enc.encode(img)
+    assert isinstance(data, bytes) and data == b"".join(p.tobytes() for p in planes)
+    assert "raw_i420" not in CODECS
+    with pytest.raises(CodecError, match="unknown codec"):
+        decode_image("raw_i420", data, w, h)
+
+
 def test_jpeg_round_trip_and_quality():
     img = smooth(96, 128)
     enc = make_encoder("jpeg", 128, 96)
@@ -133,7 +151,7 @@ def test_odd_sizes(codec):
         np.testing.assert_array_equal(out, img)
 
 
-@pytest.mark.parametrize("codec", CODECS)
+@pytest.mark.parametrize("codec", (*CODECS, "raw_i420"))
 def test_non_contiguous_input_is_copied(codec):
     img = smooth(32, 48)
     view = np.ascontiguousarray(img[::-1])[::-1]  # same pixels, negative strides
@@ -161,7 +179,7 @@ def test_bad_arguments_name_the_field(kwargs, field):
     assert isinstance(e.value, BlendsplatError) and not isinstance(e.value, FrameError)
 
 
-@pytest.mark.parametrize("codec", CODECS)
+@pytest.mark.parametrize("codec", (*CODECS, "raw_i420"))
 @pytest.mark.parametrize("image", [
     np.zeros((16, 16, 4), np.float32),
     np.zeros((16, 16, 4), np.uint16),

@@ -927,6 +927,52 @@ def test_native_rgba8_rounds_and_clamps_as_to_uint8():
     assert np.array_equal(native.to_rgba8(rgb, alpha), to_uint8(torch.cat([rgb, alpha[..., None]], -1)))
 
 
+@pytest.mark.parametrize("height, width, pad", [(48, 64, 0), (7, 9, 5), (1, 1, 3), (6, 3, 0), (70, 130, 30)])
+def test_native_rgba8_to_i420_is_the_numpy_conversion_bit_for_bit_and_leaves_row_padding(monkeypatch, height, width,
+                                                                                          pad):
+    from render_core.media import pixels
+
+    rgba = np.random.default_rng(height * width).integers(0, 256, (height, width, 4), dtype=np.uint8)
+    rgba[0, 0, :3] = 255  # the extremes: white and black stay inside studio range
+    rgba[-1, -1, :3] = 0
+    out = []
+    for built in (True, False):
+        monkeypatch.setattr(native, "available", lambda built=built: built)
+        ch, cw = (height + 1) // 2, (width + 1) // 2
+        planes = [np.full((height, width + pad), 7, np.uint8), np.full((ch, cw + pad), 7, np.uint8),
+                  np.full((ch, cw + pad), 7, np.uint8)]
+        pixels.rgba8_to_i420(rgba, *planes)
+        out.append(planes)
+    for a, b in zip(*out, strict=True):
+        assert np.array_equal(a, b)
+        assert (a[:, a.shape[1] - pad:] == 7).all()  # the padding is left alone
+    y, u, v = out[0]
+    assert y[-1, width - 1] == 16 and (y[0, 0] == 235 or height * width == 1)  # one pixel: black wins
+    assert 16 <= u[:, :cw].min() and u[:, :cw].max() <= 240 and 16 <= v[:, :cw].min() and v[:, :cw].max() <= 240
+    with pytest.raises(ValueError, match="do not fit"):
+        pixels.rgba8_to_i420(rgba, y[:-1], u, v)
+
+
+def test_rgba8_to_i420_is_ffmpegs_bt601_conversion_within_a_level():
+    """The encoders' input as FFmpeg made it before (swscale's RGBA to 4:2:0 default): luma within one level;
+    chroma differs only by the filter (a 2x2 mean here), and decodes back to the image as closely."""
+    import av
+
+    from render_core.media import pixels
+
+    yy, xx = np.mgrid[0:64, 0:96]
+    rgba = np.stack([(xx * 3 + yy) % 256, yy * 4, (xx + yy) // 2, np.full_like(xx, 255)], -1).astype(np.uint8)
+    ours = av.VideoFrame(96, 64, "yuv420p")
+    pixels.rgba8_to_i420(rgba, *[np.frombuffer(p, np.uint8).reshape(-1, p.line_size) for p in ours.planes])
+    ffmpeg = av.VideoFrame.from_ndarray(rgba, format="rgba").reformat(format="yuv420p")
+    luma = [np.frombuffer(f.planes[0], np.uint8).reshape(-1, f.planes[0].line_size)[:, :96].astype(int)
+            for f in (ours, ffmpeg)]
+    assert np.abs(luma[0] - luma[1]).max() <= 1
+    back = [psnr(torch.from_numpy(f.to_ndarray(format="rgb24") / 255.0), torch.from_numpy(rgba[..., :3] / 255.0))
+            for f in (ours, ffmpeg)]
+    assert back[0] >= back[1] - 0.5 and back[0] > 25
+
+
 def test_local_synth_avatar_leaves_pairs_unstored():
     dense = native.NativeAvatar(synth_avatar(gaussians=2000, blendshapes=6, seed=4))
     local_avatar = synth_avatar(gaussians=2000, blendshapes=6, seed=4, local=True)

@@ -155,6 +155,25 @@ def test_the_h264_encoder_is_libx264_ultrafast_on_one_thread_measured_keyframes_
     assert enc.opened == 2 and enc.codec.bit_rate == h264.MIN_BITRATE
 
 
+@pytest.mark.parametrize("make", [encoder.H264Encoder, encoder.Vp8Encoder])
+def test_a_yuv420_frame_keeps_its_pts_through_the_encoder_and_its_rtp_timestamp_is_the_frames(make):
+    """PyAV rebases the pts of a frame it encodes without converting it (4:2:0 in) to the codec's 1/30 s in place,
+    and aiortc computes the RTP timestamp from it after encoding: frames 33 ms apart shared a timestamp."""
+    from fractions import Fraction
+
+    import av
+
+    enc = make()
+    for pts in (4, 3001, 3004, 9_000_000):
+        frame = av.VideoFrame(64, 48, "yuv420p")
+        for plane in frame.planes:
+            np.frombuffer(plane, np.uint8)[:] = 90
+        frame.pts, frame.time_base = pts, Fraction(1, 90_000)
+        payloads, timestamp = enc.encode(frame)
+        assert payloads and timestamp == pts and frame.pts == pts and frame.time_base == Fraction(1, 90_000)
+        assert enc.last.pts == pts
+
+
 def test_a_sender_gets_this_services_encoder_for_its_codec_before_it_makes_its_own():
     from aiortc import RTCRtpSender
     from aiortc.mediastreams import VideoStreamTrack
@@ -175,11 +194,29 @@ def test_a_sender_gets_this_services_encoder_for_its_codec_before_it_makes_its_o
     asyncio.run(run())
 
 
-@pytest.mark.parametrize("width, height", [(64, 48), (130, 70)])  # 130: FFmpeg pads the RGBA rows
-def test_the_track_hands_the_newest_frame_in_one_reused_rgba_buffer_and_acknowledges_each(width, height):
+@pytest.mark.parametrize("width, height", [(64, 48), (130, 70)])  # 130: FFmpeg pads the plane rows
+def test_the_track_hands_the_newest_frame_in_one_reused_yuv420_buffer_and_acknowledges_each(width, height):
     import av
 
+    from render_core.media.pixels import rgba8_to_i420
     from service.webrtc.track import FrameTrack, Pending
+
+    def i420(image):  # the engine's raw_i420: the planes the track must hand the encoder (padding cut off)
+        ch, cw = (height + 1) // 2, (width + 1) // 2
+        planes = [np.zeros((height, width), np.uint8), np.zeros((ch, cw), np.uint8), np.zeros((ch, cw), np.uint8)]
+        rgba8_to_i420(image, *planes)
+        return planes
+
+    def planes_of(frame):
+        assert frame.format.name == "yuv420p" and (frame.width, frame.height) == (width, height)
+        return [np.frombuffer(p, np.uint8).reshape(-1, p.line_size)[:, :w]
+                for p, w in zip(frame.planes, (width, (width + 1) // 2, (width + 1) // 2), strict=True)]
+
+    def same(frame, image):
+        return all(np.array_equal(a, b) for a, b in zip(planes_of(frame), i420(image), strict=True))
+
+    def data(image):
+        return b"".join(p.tobytes() for p in i420(image))
 
     done, sent = [], []
     rng = np.random.default_rng(0)
@@ -187,15 +224,15 @@ def test_the_track_hands_the_newest_frame_in_one_reused_rgba_buffer_and_acknowle
 
     async def run():
         track = FrameTrack(width, height, lambda frame, now: sent.append(frame.index), done.append)
-        track.put(Pending(1, 0, images[0].tobytes(), None))
-        track.put(Pending(2, 0, images[1].tobytes(), None))  # replaces frame 1 before the encoder takes it
+        track.put(Pending(1, 0, data(images[0]), None))
+        track.put(Pending(2, 0, data(images[1]), None))  # replaces frame 1 before the encoder takes it
         first = await track.recv()
-        assert np.array_equal(first.to_ndarray(format="rgba"), images[1]) and done == [1, 2] and not sent
+        assert same(first, images[1]) and done == [1, 2] and not sent
         first.pict_type = av.video.frame.PictureType.I  # what an encoder sets for a keyframe
-        track.put(Pending(3, 0, images[2].tobytes(), None))
+        track.put(Pending(3, 0, data(images[2]), None))
         second = await track.recv()
         assert second is first and second.pict_type == av.video.frame.PictureType.NONE  # the same buffer, refilled
-        assert np.array_equal(second.to_ndarray(format="rgba"), images[2]) and second.pts > 0
+        assert same(second, images[2]) and second.pts > 0
         assert done == [1, 2, 3] and sent == [2] and track.replaced == 1
         track.stop()
 

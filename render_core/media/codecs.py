@@ -11,6 +11,9 @@ composited over the background and whose channel 3 is the accumulated alpha, for
   with the run-length strategy (on rendered 512x512 frames faster and smaller than "None" or "Sub", or than the
   default strategy); lossless, quality ignored.
 - ``raw_rgba`` (``application/octet-stream``): the array's bytes, row-major RGBA; quality ignored.
+- ``raw_i420`` (internal: a frame format for a transport that encodes video itself, not a stream codec of the API):
+  the Y, U and V planes of 4:2:0, unpadded and in that order (H x W, then twice ceil(H/2) x ceil(W/2) bytes),
+  BT.601 studio range (:func:`~render_core.media.pixels.rgba8_to_i420`); alpha dropped, quality ignored.
 - ``h264`` (``video/h264``): libx264 through PyAV, one stateful encoder per stream (not thread-safe), preset
   ultrafast, tune zerolatency, no B-frames, an IDR frame with SPS/PPS first and then every ``2 * fps`` frames;
   each ``encode`` returns exactly one access unit as Annex B bytes. yuv420p, BT.709 limited range (signalled in
@@ -31,8 +34,10 @@ from fractions import Fraction
 import numpy as np
 
 from ..errors import CodecError, ShapeError
+from .pixels import rgba8_to_i420
 
 CODECS = ("jpeg", "png", "raw_rgba", "h264")
+FRAME_FORMATS = ("raw_i420",)  # make_encoder's too; not stream codecs (no decode_image, no media type of the API)
 MEDIA_TYPES = {"jpeg": "image/jpeg", "png": "image/png", "raw_rgba": "application/octet-stream",
                "h264": "video/h264"}
 JPEG_DEFAULT_QUALITY = 90
@@ -40,8 +45,8 @@ H264_DEFAULT_CRF = 23
 MAX_SIZE = 16384
 
 
-def _check_codec(codec: str) -> None:
-    if codec not in CODECS:
+def _check_codec(codec: str, also: tuple[str, ...] = ()) -> None:
+    if codec not in CODECS + also:
         raise CodecError(f"unknown codec {codec!r}; use one of {', '.join(CODECS)}", field="codec")
 
 
@@ -125,6 +130,18 @@ class RawRgbaEncoder(Encoder):
         return rgba.tobytes()
 
 
+class RawI420Encoder(Encoder):
+    codec, media_type = "raw_i420", "application/octet-stream"
+
+    def _encode(self, rgba: np.ndarray) -> bytes:
+        h, w = self.height, self.width
+        ch, cw = (h + 1) // 2, (w + 1) // 2
+        out = np.empty(h * w + 2 * ch * cw, np.uint8)
+        rgba8_to_i420(rgba, out[:h * w].reshape(h, w), out[h * w:h * w + ch * cw].reshape(ch, cw),
+                      out[h * w + ch * cw:].reshape(ch, cw))
+        return out.tobytes()
+
+
 def h264_crf(quality: int) -> int:
     """The CRF that ``quality`` (0: default, else 1-100, higher is better) selects for H.264."""
     return H264_DEFAULT_CRF if quality == 0 else 51 - quality // 2
@@ -176,7 +193,7 @@ def make_encoder(codec: str, width: int, height: int, quality: int = 0, fps: flo
     """An encoder of ``codec`` for frames of ``width`` x ``height``; ``quality`` 0 is the codec's default, else
     1-100 (ignored by the lossless codecs); ``fps`` sets the H.264 timing and keyframe interval. Bad arguments
     raise :class:`~render_core.errors.CodecError` naming the field."""
-    _check_codec(codec)
+    _check_codec(codec, FRAME_FORMATS)
     _check_size(width, height)
     if isinstance(quality, bool) or not isinstance(quality, int | np.integer) or not 0 <= quality <= 100:
         raise CodecError(f"must be an integer in [0, 100] (0: the codec's default), got {quality!r}",
@@ -185,7 +202,7 @@ def make_encoder(codec: str, width: int, height: int, quality: int = 0, fps: flo
         raise CodecError(f"must be a number in (0, 1000], got {fps!r}", field="fps")
     if codec == "h264":
         return H264Encoder(width, height, quality, fps)
-    cls = {"jpeg": JpegEncoder, "png": PngEncoder, "raw_rgba": RawRgbaEncoder}[codec]
+    cls = {"jpeg": JpegEncoder, "png": PngEncoder, "raw_rgba": RawRgbaEncoder, "raw_i420": RawI420Encoder}[codec]
     return cls(width, height, quality)
 
 

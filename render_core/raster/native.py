@@ -403,6 +403,13 @@ def bandwidth_probe(nbytes: int, threads: int = 0) -> dict:
     return dict(_native.bandwidth_probe(int(nbytes), threads))
 
 
+def rgba8_to_i420(rgba: np.ndarray, y: np.ndarray, u: np.ndarray, v: np.ndarray) -> None:
+    """[H, W, 4] uint8 RGBA into the Y, U and V planes of a 4:2:0 frame ([rows, line size] uint8 each, C order):
+    :func:`render_core.media.pixels.rgba8_to_i420`'s conversion, on the calling thread."""
+    _require()
+    _native.rgba8_to_i420(rgba, y, u, v)
+
+
 def to_rgba8(rgb: Tensor, alpha: Tensor, threads: int = 0) -> np.ndarray:
     """[B, H, W, 3] colour and [B, H, W] alpha in [0, 1] -> [B, H, W, 4] uint8 RGBA, rounded (for encoders)."""
     _require()

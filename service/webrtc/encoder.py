@@ -10,7 +10,8 @@ tune zerolatency and as many sliced threads as x264 picks (1.5 a core): 8 to 9 m
 the module's bounds, a new encoder when the target moves by more than 10 %, the I frame a PLI or FIR asks for) with
 libx264 at :data:`X264_PRESET` (ultrafast, the engine's own H.264 preset) with the loop filter kept on
 (:data:`X264_PARAMS`), one thread per stream (:data:`X264_THREADS`): 1.7 ms of CPU a 512x512 frame on a quiet core
-(2.2 ms in the server under four streams), RGBA to YUV 4:2:0 included, for 1 to 1.5 dB less PSNR at the same
+(2.2 ms in the server under four streams) with FFmpeg's RGBA to YUV 4:2:0 conversion, which the track now does
+before (:mod:`.track`: frames arrive in 4:2:0, 0.8 ms of CPU a frame here), for 1 to 1.5 dB less PSNR at the same
 bitrate than medium (43 to 44 dB at 0.8 Mbit/s on the 64k open-head avatar; superfast: 2.2 ms on a quiet core,
 0.5 dB more). One thread: streams encode in parallel on the executor's threads; x264's slices on 2 cores only add
 hand-offs. VP8 stays aiortc's (libvpx realtime, cpu-used -6, one thread at this size).
@@ -29,6 +30,7 @@ from dataclasses import dataclass
 
 import av
 from aiortc.codecs import h264, vpx
+from aiortc.mediastreams import VIDEO_TIME_BASE, convert_timebase
 
 X264_PRESET = "ultrafast"
 X264_PARAMS = "deblock=0,0"  # ultrafast turns the loop filter off; on (at strength 0) it costs ~0.1 ms for ~0.7 dB
@@ -39,7 +41,7 @@ X264_OPTIONS = {"level": "31", "tune": "zerolatency",  # aiortc's
 
 @dataclass(frozen=True)
 class Cost:
-    """One ``encode`` call: the frame's pts, wall and CPU milliseconds (RGBA to YUV, the codec, RTP packetisation;
+    """One ``encode`` call: the frame's pts, wall and CPU milliseconds (the codec, RTP packetisation;
     the CPU time is the calling thread's, which is all of it with one codec thread)."""
 
     pts: int
@@ -48,15 +50,22 @@ class Cost:
 
 
 class _Measured:
-    """Records :class:`Cost` of each ``encode`` call in ``last`` (read by the session once the frame is sent)."""
+    """Records :class:`Cost` of each ``encode`` call in ``last`` (read by the session once the frame is sent), and
+    keeps the frame's timestamp: a YUV 4:2:0 frame goes to the codec as it is (no converted copy), and PyAV rebases
+    the pts of the frame it encodes to the codec's time base (1/30 s) in place, which aiortc reads back for the RTP
+    timestamp after encoding. The frame leaves with the pts it came with, and the timestamp is the frame's."""
 
     last: Cost | None = None
 
     def encode(self, frame: av.VideoFrame, force_keyframe: bool = False) -> tuple[list[bytes], int]:
+        pts, time_base = frame.pts, frame.time_base
         wall, cpu = time.perf_counter(), time.thread_time()
-        result = super().encode(frame, force_keyframe)
-        self.last = Cost(frame.pts, (time.perf_counter() - wall) * 1e3, (time.thread_time() - cpu) * 1e3)
-        return result
+        try:
+            payloads, _ = super().encode(frame, force_keyframe)
+        finally:
+            frame.pts, frame.time_base = pts, time_base
+        self.last = Cost(pts, (time.perf_counter() - wall) * 1e3, (time.thread_time() - cpu) * 1e3)
+        return payloads, convert_timebase(pts, time_base, VIDEO_TIME_BASE)
 
 
 class Vp8Encoder(_Measured, vpx.Vp8Encoder):

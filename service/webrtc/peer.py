@@ -2,7 +2,7 @@
 and the process's sessions (:class:`Peers`).
 
 - The engine session is opened like a WebSocket's (the key's stream limit, the server's session limit, the
-  avatar's read rule), with the ``raw_rgba`` codec: its frames go to the :class:`~.track.FrameTrack`, whose
+  avatar's read rule); its frames go, as 4:2:0 planes, to the :class:`~.track.FrameTrack`, whose
   encoder is aiortc's sender's (the classes of :mod:`.encoder`: H.264 at a fast libx264 preset). Frames come from
   the one scheduler and render thread as every other stream's.
 - The data channel carries the WebSocket stream's messages: the client sends ``StreamRequest`` as protobuf JSON
@@ -10,8 +10,9 @@ and the process's sessions (:class:`Peers`).
   by the same session code; the server sends JSON: the session's ``header`` once the channel is open, an ``error``
   per refused message, the final ``status``, and per frame sent on the video track a ``frame`` (a
   ``RenderedFrame`` without data: index, client time, timings, where ``encode_ms`` is the video encoder's call
-  for this frame (RGBA to YUV, the codec, RTP packetisation; wall time) and ``total_ms`` runs from the pose's
-  receipt to its RTP packets) with ``video``: ``{"pts", "codec", "waitMs"`` (rendered to handed to the encoder),
+  for this frame (the codec and RTP packetisation of the track's 4:2:0 frame; wall time) and ``total_ms`` runs
+  from the pose's receipt to its RTP packets) with ``video``: ``{"pts", "codec", "waitMs"`` (rendered to handed
+  to the encoder),
   ``"sendMs"`` (handed to the encoder to its RTP packets sent: the executor's queue, the encode, the sending),
   ``"encodeCpuMs"}`` (the encoder call's CPU time: the encode cost).
 - Flow: the engine hands each rendered frame to the track as it is delivered (the session's ``frame_sink``: the
@@ -65,7 +66,7 @@ class Peer:
         self.key_id = session.principal.key_id
         out = session.out
         self.track = FrameTrack(out.width, out.height, self._sent, self._done)
-        session.frame_sink = self._frame  # rendered frames straight to the track (not through responses())
+        session.sink_frames(self._frame, yuv420=True)  # rendered frames straight to the track, in 4:2:0
         self.codecs = codecs
         self.codec = ""  # negotiated
         self.transceiver = None
