@@ -3,10 +3,13 @@
 Each stream (a :class:`~service.webrtc.client.WhepClient`) sends smooth poses (a few expressions and the head's
 joints on slow sines, as a speaking face moves) on its data channel every 1/fps seconds and receives the video
 track. A video frame is matched to the pose it shows by its RTP timestamp (:func:`~service.webrtc.client.
-match_indices`); pose-to-frame latency runs from sending the pose to the decoded frame (both on this client's
-clock). The first ``warmup`` seconds are not counted.
+match_indices`); pose-to-frame latency runs from sending the pose to the frame received (its last packet; both on
+this client's clock), as the gRPC bench's runs to the message received. Like that bench, this client decodes nothing
+during the run (a receiver's decoder is the receiving machine's, not the server's: here it would share the server's
+cores): each frame's bitstream is kept and decoded after the run. The first ``warmup`` seconds are not counted.
 
-After the timed run (never during it), the first stream's recorded poses are rendered once more by the service:
+After the timed run (never during it), the first stream's video is decoded and its recorded poses are rendered once
+more by the service:
 as PNG (the reference) for the frames whose decoded pixels were kept (``psnr_db``: the decoded video against them,
 matched by index, mean over the kept frames), and as JPEG at the service's default quality for a sample of the
 poses (``jpeg_bytes_per_second``: their mean size times the video's frame rate: the JPEG stream's bytes for the same
@@ -174,7 +177,7 @@ async def bench_webrtc(url: str, avatar: str, *, seconds: float = 20.0, fps: flo
     use_loopback_if_local(url)
     expected = (warmup + seconds) * fps
     step = max(1, int(expected // KEEP_FRAMES))
-    runs = [_Run(WhepClient(url, avatar, size=size, codecs=codec, api_key=api_key,
+    runs = [_Run(WhepClient(url, avatar, size=size, codecs=codec, api_key=api_key, decode=False,
                             keep=lambda n, step=step: n % step == step // 2 and n >= warmup * fps))
             for _ in range(streams)]
     opened = await asyncio.gather(*(r.client.open() for r in runs), return_exceptions=True)
@@ -199,6 +202,7 @@ async def bench_webrtc(url: str, avatar: str, *, seconds: float = 20.0, fps: flo
                     and r.sent[int(t["frame"]["index"])] >= start]
     psnr_mean = psnr_min = jpeg_frame = None
     if live:
+        live[0].client.decode_recorded()
         psnr_mean, psnr_min, jpeg_frame = await _quality(live[0], matched_all[0], url, grpc_target, avatar, size,
                                                          api_key)
     fps_mean = float(np.mean(fps_each)) if fps_each else 0.0

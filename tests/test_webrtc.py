@@ -302,8 +302,9 @@ def test_signalling_needs_a_key_and_refuses_a_bad_offer_naming_the_sdp(server):
     assert gauge(server) == 0
 
 
-async def _drive(server: LiveServer, codec: str) -> tuple[WhepClient, list, str]:
-    client = WhepClient(server.http_url, "demo", size=128, codecs=codec, api_key=server.api_key, keep=lambda n: True)
+async def _drive(server: LiveServer, codec: str, decode: bool = True) -> tuple[WhepClient, list, str]:
+    client = WhepClient(server.http_url, "demo", size=128, codecs=codec, api_key=server.api_key, keep=lambda n: True,
+                        decode=decode)
     await client.open()
     names = client.header["expressionNames"]
     for index in range(1, 31):  # ten neutral frames, then the first expression fully on
@@ -346,6 +347,35 @@ def test_a_python_client_gets_frames_that_change_with_the_expression_and_delete_
         await client.close()  # DELETE, then the peer connection's close
     asyncio.run(run())
     assert wait_until(lambda: gauge(server) == 0, 3.0)
+
+
+def test_a_client_that_decodes_after_the_run_records_each_frame_as_it_arrives_and_decodes_the_video_later(server):
+    """`bench webrtc`'s client: no decoder runs during the run (its CPU is the receiver's, not the server's), frames
+    are timed at their last packet, and the recorded video decodes afterwards to the frames a decoding client gets."""
+    async def run():
+        client, indices, _ = await _drive(server, "h264", decode=False)
+        await client.close()
+        assert len(client.frames) >= 20 and all(f.image is None for f in client.frames)  # nothing decoded yet
+        assert sum(1 for i in indices if i) >= 20  # matched to their poses by RTP timestamp
+        client.decode_recorded()
+        shown = {i: f.image for f, i in zip(client.frames, indices, strict=True) if i and f.image is not None}
+        assert len(shown) >= 20
+        neutral = [image for i, image in shown.items() if i <= 10]
+        smiling = [image for i, image in shown.items() if i >= 20]
+        assert neutral[-1].shape == (128, 128, 3) and neutral[-1].std() > 5
+        assert np.abs(neutral[-1].astype(float) - smiling[-1].astype(float)).mean() > 0.5
+        return shown
+
+    recorded = asyncio.run(run())
+
+    async def decoding():
+        client, indices, _ = await _drive(server, "h264")
+        await client.close()
+        return {i: f.image for f, i in zip(client.frames, indices, strict=True) if i and f.image is not None}
+
+    live = asyncio.run(decoding())
+    for i in set(recorded) & set(live) - set(range(8, 14)):  # the same poses decode alike (not mid-change)
+        assert np.abs(recorded[i].astype(float) - live[i].astype(float)).mean() < 3.0, i
 
 
 def test_blendsplat_live_plays_a_driving_file_and_its_frames_match_the_renderer(server, tmp_path):

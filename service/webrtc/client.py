@@ -2,7 +2,10 @@
 
 :class:`WhepClient` offers a recvonly video transceiver and a data channel, POSTs the offer to ``/v1/webrtc``
 (the key as a bearer token), sends frames on the data channel as protobuf JSON, and records every decoded video
-frame's RTP timestamp and arrival time and every data-channel reply.
+frame's RTP timestamp and arrival time and every data-channel reply. With ``decode=False`` it records each frame as
+it completes (its last packet) and decodes nothing until :meth:`WhepClient.decode_recorded`, after the run: a
+benchmark client on the server's own cores then takes no decoder's CPU from it (the gRPC bench decodes no JPEG
+either), and latency runs to the frame received, as the gRPC bench's does.
 
 Frames are matched to indices by RTP timestamp (:func:`match_indices`): the server's timing message of each frame
 carries its ``video.pts``, and a frame's RTP timestamp is ``(origin + pts) mod 2**32`` with one random origin per
@@ -45,6 +48,14 @@ class MarkerJitterBuffer(JitterBuffer):
     def __init__(self, capacity: int, prefetch: int = 0, is_video: bool = False) -> None:
         super().__init__(capacity, prefetch, is_video)
         self.bytes = 0  # the video bitstream's bytes in frames handed out
+        self.take: Callable[[JitterFrame], None] | None = None  # set: complete frames go here, not to the decoder
+
+    def add(self, packet) -> tuple[bool, JitterFrame | None]:
+        pli, frame = super().add(packet)
+        if frame is not None and self.take is not None:
+            self.take(frame)
+            return pli, None
+        return pli, frame
 
     def _remove_frame(self, sequence_number: int) -> JitterFrame | None:
         frame = self._marker_frame() if self._is_video else None
@@ -98,6 +109,7 @@ class WhepClient:
     links: list[str] = field(default_factory=list)
     ice_servers: list[RTCIceServer] = field(default_factory=list)  # e.g. ice_servers_of(links) of a session before
     relay_only: bool = False  # gather relay candidates only (through the TURN servers of ice_servers)
+    decode: bool = True  # False: frames are recorded as they arrive and decoded by decode_recorded(), after the run
 
     def __post_init__(self) -> None:
         self.pc: RTCPeerConnection | None = None
@@ -105,6 +117,7 @@ class WhepClient:
         self._opened = asyncio.Event()
         self._ended = asyncio.Event()
         self._reader: asyncio.Task | None = None
+        self._encoded: list[tuple[Received, JitterFrame, bool]] = []  # decode off: (arrival, bitstream, keep pixels)
         self._http = httpx.AsyncClient(timeout=30.0, headers=(
             {"Authorization": f"Bearer {self.api_key}"} if self.api_key else {}))
 
@@ -113,7 +126,9 @@ class WhepClient:
         pc = self.pc = RTCPeerConnection(RTCConfiguration(
             iceServers=self.ice_servers,
             iceTransportPolicy=RTCIceTransportPolicy.RELAY if self.relay_only else RTCIceTransportPolicy.ALL))
-        pc.addTransceiver("video", direction="recvonly")
+        transceiver = pc.addTransceiver("video", direction="recvonly")
+        if not self.decode:  # aiortc 1.16 (pinned): the receiver's private jitter buffer, made with the transceiver
+            transceiver.receiver._RTCRtpReceiver__jitter_buffer.take = self._arrived
         self.channel = channel = pc.createDataChannel("blendsplat")
         channel.on("message", self._message)
         pc.on("track", lambda track: self._start_reader(track))
@@ -147,6 +162,29 @@ class WhepClient:
                     received.image = frame.to_ndarray(format="rgb24")
                 self.frames.append(received)
                 n += 1
+
+    def _arrived(self, frame: JitterFrame) -> None:
+        """A complete encoded frame (``decode`` off): its arrival now, its bitstream kept for later."""
+        received = Received(frame.timestamp, time.perf_counter())
+        self._encoded.append((received, frame, self.keep(len(self.frames))))
+        self.frames.append(received)
+
+    def decode_recorded(self) -> None:
+        """Decode the frames recorded with ``decode`` off, in arrival order, with aiortc's decoder of the negotiated
+        codec, and give the kept ones their pixels (a frame that does not decode keeps none)."""
+        import av
+        from aiortc.codecs import get_decoder
+
+        codec = next(c for c in self.pc.getTransceivers()[0]._codecs if not c.mimeType.lower().endswith("/rtx"))
+        decoder, kept = get_decoder(codec), {}
+        for received, frame, keep in self._encoded:
+            if keep:
+                kept[received.ts] = received
+            with contextlib.suppress(av.FFmpegError):
+                for image in decoder.decode(frame):
+                    if (target := kept.pop(int(image.pts), None)) is not None:
+                        target.image = image.to_ndarray(format="rgb24")
+        self._encoded = []
 
     def _message(self, data: str | bytes) -> None:
         body = json.loads(data)
