@@ -156,6 +156,7 @@ class Session:
             if e.field != "fps":
                 raise
             raise CodecError(e.detail, field="fps_hint") from None  # the name the client sent it under
+        self.frame_format = self.out.codec  # what its frames are made as (the metrics' codec label)
         self.pending: Job | None = None
         self.unacked: deque[int] = deque()  # indices rendering or sent, not yet acknowledged
         self.last_index = 0  # the index of the newest frame accepted (frames must go above it)
@@ -244,6 +245,7 @@ class Session:
         encode threads) instead of the session's codec. Before the first frame."""
         if yuv420:
             self.encoder = make_encoder("raw_i420", self.out.width, self.out.height)
+            self.frame_format = self.encoder.codec
         self.frame_sink = sink
 
     # ---------------------------------------------------------------------------------------- for the engine
@@ -268,8 +270,8 @@ class Session:
         else:
             self.sent += 1
             m = self.engine.metrics
-            m.frames.labels(self.encoder.codec).inc()
-            m.frame_bytes.labels(self.encoder.codec).inc(len(result.data))
+            m.frames.labels(self.frame_format).inc()
+            m.frame_bytes.labels(self.frame_format).inc(len(result.data))
             fields = {"index": job.index, "client_time_us": job.client_time_us, "codec": self.out.codec_enum,
                       "width": self.out.width, "height": self.out.height, "timings": result.timings,
                       "dropped": self.dropped}
