@@ -405,7 +405,7 @@ void to_rgba8(In<float> rgb, In<float> alpha, Out<uint8_t> out, int threads) {
 // as FFmpeg's swscale converts by default. Y per pixel; U and V from the sums of each 2x2 block (an odd last row or
 // column counted twice). Integer arithmetic, rounded half up (media/pixels.py's numpy version is the same, bit for
 // bit). Planes are [rows, line size] with the line size >= the plane's width (FFmpeg pads rows). Holds the GIL: a
-// 512x512 frame takes tens of microseconds, less than getting the GIL back would cost beside a busy Python thread.
+// 512x512 frame takes about 0.1 ms, less than getting the GIL back could cost beside a busy Python thread.
 // The arithmetic, compiled for AVX2 as well as the baseline (the CPU picks at load time).
 __attribute__((target_clones("avx2", "default")))
 void i420_rows(const uint8_t* src, int64_t H, int64_t W, uint8_t* py, int64_t ys, uint8_t* pu, int64_t us,

@@ -10,8 +10,8 @@ tune zerolatency and as many sliced threads as x264 picks (1.5 a core): 8 to 9 m
 the module's bounds, a new encoder when the target moves by more than 10 %, the I frame a PLI or FIR asks for) with
 libx264 at :data:`X264_PRESET` (ultrafast, the engine's own H.264 preset) with the loop filter kept on
 (:data:`X264_PARAMS`), one thread per stream (:data:`X264_THREADS`): 1.7 ms of CPU a 512x512 frame on a quiet core
-(2.2 ms in the server under four streams) with FFmpeg's RGBA to YUV 4:2:0 conversion, which the track now does
-before (:mod:`.track`: frames arrive in 4:2:0, 0.8 ms of CPU a frame here), for 1 to 1.5 dB less PSNR at the same
+(2.2 ms in the server under four streams) when it also converted RGBA to YUV 4:2:0; frames now arrive in 4:2:0
+(the engine converts them: :mod:`.track`), 0.85 ms of CPU a frame in the server, for 1 to 1.5 dB less PSNR at the same
 bitrate than medium (43 to 44 dB at 0.8 Mbit/s on the 64k open-head avatar; superfast: 2.2 ms on a quiet core,
 0.5 dB more). One thread: streams encode in parallel on the executor's threads; x264's slices on 2 cores only add
 hand-offs. VP8 stays aiortc's (libvpx realtime, cpu-used -6, one thread at this size).

@@ -12,9 +12,8 @@ and the process's sessions (:class:`Peers`).
   ``RenderedFrame`` without data: index, client time, timings, where ``encode_ms`` is the video encoder's call
   for this frame (the codec and RTP packetisation of the track's 4:2:0 frame; wall time) and ``total_ms`` runs
   from the pose's receipt to its RTP packets) with ``video``: ``{"pts", "codec", "waitMs"`` (rendered to handed
-  to the encoder),
-  ``"sendMs"`` (handed to the encoder to its RTP packets sent: the executor's queue, the encode, the sending),
-  ``"encodeCpuMs"}`` (the encoder call's CPU time: the encode cost).
+  to the encoder), ``"sendMs"`` (handed to the encoder to its RTP packets sent: the executor's queue, the encode,
+  the sending), ``"encodeCpuMs"}`` (the encoder call's CPU time: the encode cost).
 - Flow: the engine hands each rendered frame to the track as it is delivered (the session's ``frame_sink``: the
   pixels as the render thread made them, no protobuf copy, no queue); the track acknowledges a frame to the engine
   when it hands it to the encoder or drops it for a newer one, so the engine renders as fast as the peer takes

@@ -4,9 +4,9 @@ aiortc's sender loop calls :meth:`FrameTrack.recv`, encodes what it returns in t
 libx264 or VP8 with libvpx, through PyAV: the encoders of :mod:`.encoder`) and sends the RTP packets, then calls
 ``recv`` again. The engine hands this sink's frames over as the 4:2:0 planes the encoders take (``raw_i420``,
 converted from RGBA on its encode threads, off the loop and the render thread) to :meth:`FrameTrack.put` as they are
-delivered (the session's sink); the track
-holds one of them at a time. A frame that arrives while the previous one still waits for the encoder replaces it
-(a slow or congested peer drops frames, nothing queues), and ``recv`` hands the encoder the newest.
+delivered (the session's sink); the track holds one of them at a time. A frame that arrives while the previous one
+still waits for the encoder replaces it (a slow or congested peer drops frames, nothing queues), and ``recv``
+hands the encoder the newest.
 
 Timing: a frame's encode-and-send time is measured from the ``recv`` that handed it out to the next ``recv`` call
 (aiortc's loop encodes, packetizes and sends in between); :attr:`FrameTrack.on_sent` gets each frame then (the
