@@ -314,8 +314,40 @@ def test_the_matte_dilation_is_a_square_max_filter_at_any_radius():
     rng = np.random.default_rng(0)
     mask = rng.random((130, 97)) > 0.99
     mask[0, 5] = mask[129, 96] = True  # at the edges
-    for radius in (0, 1, 4, 17, 70):
+    for radius in (0, 1, 2, 3, 4, 17, 70):
         want = torch.nn.functional.max_pool2d(torch.from_numpy(mask.astype(np.float32))[None, None],
                                               2 * radius + 1, stride=1, padding=radius)[0, 0].numpy() > 0.5
         got = _dilated(mask, radius)
         assert got.dtype == bool and np.array_equal(got, want), radius
+
+
+def _disk(size: int, centre: tuple[float, float], radius: float) -> np.ndarray:
+    y, x = np.mgrid[:size, :size] + 0.5
+    return (x - centre[0]) ** 2 + (y - centre[1]) ** 2 <= radius ** 2
+
+
+def test_the_colour_cut_drops_spill_that_looks_like_the_background_and_keeps_hair():
+    """Outside the fitted head, the matte gives up what has the colour of the background beside it (the selfie
+    model's spill beside a head on a plain wall) and keeps what does not (hair); inside the head it stays."""
+    from render_core.tracking.segment import colour_cut
+
+    size, height = 128, 40.0
+    head = _disk(size, (64, 70), 24)
+    spill = _disk(size, (64, 70), 34)  # what the selfie model calls person: the head and a ring around it
+    hair = spill & ~head & (np.mgrid[:size, :size][0] < 50)  # above the head, inside the ring
+    rgb = np.empty((size, size, 3), np.uint8)
+    rgb[:] = (40, 60, 90)  # a blue-grey wall
+    rgb[head] = (200, 150, 120)  # skin
+    rgb[hair] = (90, 50, 20)  # brown hair
+    noise = np.random.default_rng(0).integers(-4, 5, rgb.shape)  # sensor noise
+    rgb = np.clip(rgb + noise, 0, 255).astype(np.uint8)
+    matte = spill.astype(np.float32)
+    cut = colour_cut(matte, rgb, head, height)
+    assert (cut <= matte).all() and np.array_equal(cut[head], matte[head])  # only takes away; the head untouched
+    ring = spill & ~head & ~hair
+    assert cut[ring].max() == 0.0 and cut[hair].min() == 1.0
+    assert np.array_equal(cut[~spill], matte[~spill])  # nothing added
+    # the fitted head a little too large (the fit's error): the wall inside its edge goes too, the skin stays
+    assert np.array_equal(colour_cut(matte, rgb, _disk(size, (64, 70), 25), height), cut)
+    # the whole frame inside the fitted head: the matte as it was
+    assert np.array_equal(colour_cut(matte, rgb, np.ones_like(head), height), matte)

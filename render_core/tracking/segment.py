@@ -88,6 +88,18 @@ def _dilated(mask: np.ndarray, radius: int) -> np.ndarray:
     """``mask [H, W]`` (bool) grown by ``radius`` pixels (a square neighbourhood: two separable running maxima)."""
     if radius <= 0:
         return mask
+    if radius <= 2:  # a few shifted ORs are cheaper than the running maxima
+        out = mask.copy()
+        for axis in (0, 1):
+            grown = out.copy()
+            n = out.shape[axis]
+            for d in range(1, radius + 1):
+                lo, hi = [slice(None)] * 2, [slice(None)] * 2
+                lo[axis], hi[axis] = slice(0, n - d), slice(d, n)
+                grown[tuple(lo)] |= out[tuple(hi)]
+                grown[tuple(hi)] |= out[tuple(lo)]
+            out = grown
+        return out
     return _max_filter(_max_filter(mask.view(np.uint8), radius, 0), radius, 1).view(bool)
 
 
@@ -106,12 +118,70 @@ def _grown(mask: np.ndarray, radii: list[int], max_side: int = SIZE // 2) -> lis
     return [_dilated(coarse, -(-r // s))[rows[:, None], cols[None, :]] for r in radii]
 
 
+def _box_sum(a: np.ndarray, radius: int) -> np.ndarray:
+    """The sum of ``a [H, W, ...]`` over the ``(2 radius + 1)^2`` square around each pixel (zero beyond the edges),
+    from an integral image."""
+    H, W = a.shape[:2]
+    c = np.zeros((H + 1, W + 1) + a.shape[2:], np.float64)
+    c[1:, 1:] = a.cumsum(0).cumsum(1)
+    y0, y1 = np.clip(np.arange(H) - radius, 0, H), np.clip(np.arange(H) + radius + 1, 0, H)
+    x0, x1 = np.clip(np.arange(W) - radius, 0, W), np.clip(np.arange(W) + radius + 1, 0, W)
+    return (c[y1][:, x1] - c[y0][:, x1] - c[y1][:, x0] + c[y0][:, x0]).astype(np.float32)
+
+
+def _local_mean(rgb: np.ndarray, weight: np.ndarray, radius: int, max_side: int = SIZE // 2
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """The mean colour of the pixels of ``rgb [H, W, 3]`` selected by ``weight [H, W]`` within about ``radius`` of
+    each pixel, and their count (a normalised box filter), both ``[H, W, ...]``; computed on a grid of at most
+    ``max_side`` cells a side (cell means) and repeated back to the pixels: a smooth estimate, not an exact one."""
+    H, W = weight.shape
+    s = max(1, -(-max(H, W) // max_side))
+    h, w = -(-H // s), -(-W // s)
+
+    def cells(a: np.ndarray) -> np.ndarray:
+        padded = np.zeros((h * s, w * s) + a.shape[2:], np.float32)
+        padded[:H, :W] = a
+        return padded.reshape((h, s, w, s) + a.shape[2:]).sum(axis=(1, 3))
+
+    count = _box_sum(cells(weight), max(1, round(radius / s)))
+    total = _box_sum(cells(rgb * weight[..., None]), max(1, round(radius / s)))
+    mean = total / np.maximum(count, 1e-6)[..., None]
+    rows, cols = np.arange(H) // s, np.arange(W) // s
+    return mean[rows[:, None], cols[None, :]], count[rows[:, None], cols[None, :]]
+
+
+def colour_cut(matte: np.ndarray, rgb: np.ndarray, silhouette: np.ndarray, height: float, radius: float = 0.3,
+               inset: float = 0.03, contrast: tuple[float, float] = (0.05, 0.15)) -> np.ndarray:
+    """``matte [H, W]`` lowered where, outside the fitted head's ``silhouette`` or within ``inset`` face heights
+    of its edge (at least a pixel: the fit's error and the silhouette's coarse grid), the frame ``rgb [H, W, 3]``
+    (uint8) has the colour of the background beside it: B, the mean colour of the pixels the matte gives up
+    within ``radius`` face heights. A pixel within ``contrast[0]`` of B (Euclidean, RGB in [0, 1]) is
+    background, one beyond ``contrast[1]`` keeps its matte, and the matte fades linearly between. It only takes
+    away: the selfie model's spill beside the neck and behind the head, where it shows the wall, becomes
+    background; hair, ears and anything else of another colour than the wall stay (hair of the wall's own colour
+    goes too: colour cannot tell them apart). ``height``: the face's height in pixels."""
+    band = (matte > 0) & _dilated(~silhouette, max(1, round(inset * height)))
+    if not band.any():
+        return matte
+    image = rgb.astype(np.float32) * (1.0 / 255.0)
+    B, count = _local_mean(image, (matte < 0.02).astype(np.float32), max(2, round(radius * height)))
+    at = np.nonzero(band)
+    distance = np.sqrt(np.square(image[at] - B[at]).sum(-1))
+    keep = np.clip((distance - contrast[0]) / (contrast[1] - contrast[0]), 0.0, 1.0)
+    keep[count[at] < 1] = 1.0  # no background in reach: nothing to compare with
+    out = matte.astype(np.float32, copy=True)
+    out[at] *= keep
+    return out
+
+
 def head_matte(prob: np.ndarray, landmarks: np.ndarray, neck: float = 0.2, side: float = 0.9,
                neck_side: float = 0.45, fade: float = 0.1, silhouette: np.ndarray | None = None,
-               hair: tuple[float, float] = (0.25, 0.1), neck_margin: float = 0.03) -> np.ndarray:
+               hair: tuple[float, float] = (0.25, 0.1), neck_margin: float = 0.03,
+               rgb: np.ndarray | None = None) -> np.ndarray:
     """``prob [H, W]`` limited to the head of the face with ``landmarks [468, 3]`` (module docstring); with the
     fitted head's ``silhouette [H, W]`` (bool), also to within ``hair[0]`` face heights of it above the eyes,
-    ``hair[1]`` from the eyes to the chin and ``neck_margin`` below the chin."""
+    ``hair[1]`` from the eyes to the chin and ``neck_margin`` below the chin; with the frame ``rgb [H, W, 3]`` as
+    well, cut by colour near and beyond that silhouette (:func:`colour_cut`)."""
     H, W = prob.shape
     a = eye_angle(landmarks)
     c, s = float(np.cos(a)), float(np.sin(a))
@@ -132,4 +202,7 @@ def head_matte(prob: np.ndarray, landmarks: np.ndarray, neck: float = 0.2, side:
         radii = [round(r * height) for r in (*hair, neck_margin)]
         above, beside, below = _grown(silhouette, radii)
         keep *= np.where(pv < eyes, above, np.where(pv < 0, beside, below))
-    return (prob * keep).astype(np.float32, copy=False)
+    matte = (prob * keep).astype(np.float32, copy=False)
+    if silhouette is not None and rgb is not None:
+        matte = colour_cut(matte, rgb, silhouette, height)
+    return matte

@@ -164,7 +164,7 @@ def track_video(video: str | os.PathLike, out: str | os.PathLike, *, fps: float 
                 continue
             rgb = crop_frame(frame.rgb, window)
             head = mesh_silhouette(posed(k), faces, fit.K, size, size)
-            masks.append(np.round(255 * head_matte(person_probability(rgb), landmarks[i], silhouette=head))
+            masks.append(np.round(255 * head_matte(person_probability(rgb), landmarks[i], silhouette=head, rgb=rgb))
                          .astype(np.uint8))
             if k in sheet_at:
                 tile = rgb.copy()
