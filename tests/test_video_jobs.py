@@ -390,6 +390,10 @@ def test_a_job_resumed_after_the_track_stage_does_not_track_again(tmp_path, head
     assert job.state.value == "succeeded", job.error
     assert calls == [1] and (work / "track.json").stat().st_mtime_ns == marker  # not tracked again
     assert validate_dataset(work / "tracked") == []
+    # trained on the tracker's output: each frame's pose and expressions learn a correction (train
+    # --refine-expressions), which a job from a dataset does not
+    summary = json.loads(next(work.rglob("summary.json")).read_text())
+    assert summary["refine"] == {"poses": True, "expressions": True}
     report = json.loads((work / "track.json").read_text())
     assert report["frames_dropped"]["count"] == 8 and report["interpolated"] == 2
     with JobStore.open(settings.jobs_database_url) as jobs:

@@ -159,7 +159,9 @@ def test_a_job_trains_commits_its_avatar_and_records_its_progress(reference):
         text = (work / name).read_text()
         assert str(settings.data_dir.resolve()) not in text and str(settings.data_dir) not in text, name
     assert json.loads((work / "report.json").read_text())["contact_sheet"] == "contact_sheet.png"
-    assert json.loads((work / "summary.json").read_text())["bundle"] == "avatar.bundle"
+    summary = json.loads((work / "summary.json").read_text())
+    assert summary["bundle"] == "avatar.bundle"
+    assert summary["refine"] == {"poses": False, "expressions": False}  # a dataset's tracking is taken as it is
     assert job.checkpoint_path == str(work / "checkpoints" / "ckpt_0000040.pt") and Path(job.checkpoint_path).is_file()
     assert (work / "avatar.bundle").read_bytes() == path.read_bytes()
     assert not list(work.glob(".*"))  # no temporary preview left

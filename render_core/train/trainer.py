@@ -651,6 +651,8 @@ class Trainer:
         return {
             "workdir": str(self.workdir), "preset": self.preset.name, "consistency": model.consistency,
             "seed": self.seed, "iterations": self.iteration, "iterations_this_run": done,
+            "refine": {"poses": self.preset.refine_poses or self.preset.refine_expressions,
+                       "expressions": self.preset.refine_expressions},
             "resumed_from": self._start if self._start else None, "gaussians": model.num_gaussians,
             "mouth": int(model.mouth_means.shape[0]), "expressions": len(model.meta["expression_names"]),
             "size": [int(tracking.width), int(tracking.height)], "train_frames": len(self.train_idx),

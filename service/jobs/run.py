@@ -115,7 +115,7 @@ class JobRun:
         workdir = self.workdir
         workdir.mkdir(parents=True, exist_ok=True)
         try:
-            data_dir, face_model = self._dataset(spec)
+            data_dir, face_model, tracked = self._dataset(spec)
         except TrackInterrupted:
             return self._stop_early(0, "while the video was tracked")
         facemodel = facemodel_file(w.settings.facemodel_dir, face_model)
@@ -125,6 +125,8 @@ class JobRun:
         preset = get_preset(spec.preset)
         if spec.preset_overrides():
             preset = preset.with_(**spec.preset_overrides())
+        if tracked:  # the tracker's poses and expressions: each training frame learns a correction of them
+            preset = preset.with_(refine_poses=True, refine_expressions=True)
         trainer = Trainer(data_dir, workdir, preset, device=w.device, seed=spec.seed, iterations=spec.iterations,
                           facemodel=facemodel)
         if job.attempts > 1 or last_checkpoint(workdir) is not None:
@@ -173,21 +175,21 @@ class JobRun:
             log.warning("job %s: the avatar %r was committed but the job was no longer ours", job.id, spec.avatar_id)
         return state
 
-    def _dataset(self, spec: JobSpec) -> tuple[Path, str]:
-        """The dataset folder to train on and its face model: the upload's, or for a video upload the one tracked
-        from it in the work folder (an earlier attempt's, or tracked now: TrackInterrupted on a cancel or a
-        shutdown meanwhile)."""
+    def _dataset(self, spec: JobSpec) -> tuple[Path, str, bool]:
+        """The dataset folder to train on, its face model and whether this job tracked it: the upload's, or for a
+        video upload the one tracked from it in the work folder (an earlier attempt's, or tracked now:
+        TrackInterrupted on a cancel or a shutdown meanwhile)."""
         uploads = self.worker.uploads
         try:
             upload = uploads.get(spec.upload_id)
             if upload.kind != "video":
-                return uploads.path(spec.upload_id), upload.face_model
+                return uploads.path(spec.upload_id), upload.face_model, False
             video = uploads.video_path(spec.upload_id)
         except NotFound:
             raise _gone(spec.upload_id) from None
         data_dir = tracked_dataset(self, video, upload, spec.resolution)
         manifest = json.loads((data_dir / MANIFEST).read_text(encoding="utf-8"))
-        return data_dir, str(manifest.get("face_model") or upload.face_model)
+        return data_dir, str(manifest.get("face_model") or upload.face_model), True
 
     def _stop_early(self, iteration: int, where: str | None = None) -> str:
         """Training stopped before its end or before the commit: lost (touch nothing), cancelled, or handed
