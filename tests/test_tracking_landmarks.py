@@ -351,3 +351,21 @@ def test_the_colour_cut_drops_spill_that_looks_like_the_background_and_keeps_hai
     assert np.array_equal(colour_cut(matte, rgb, _disk(size, (64, 70), 25), height), cut)
     # the whole frame inside the fitted head: the matte as it was
     assert np.array_equal(colour_cut(matte, rgb, np.ones_like(head), height), matte)
+
+
+def test_the_colour_cut_takes_the_backgrounds_colour_from_the_pixels_it_is_given():
+    """Hair past the matte's hair margin is not the wall: given as background, it would make the hair inside the
+    margin look like background; ``head_matte`` leaves it out of the background's colour."""
+    from render_core.tracking.segment import colour_cut
+
+    size, height = 128, 40.0
+    head = _disk(size, (64, 70), 24)
+    hair = _disk(size, (64, 60), 40) & ~head & (np.mgrid[:size, :size][0] < 60)  # a big head of hair
+    rgb = np.empty((size, size, 3), np.uint8)
+    rgb[:] = (40, 60, 90)
+    rgb[head], rgb[hair] = (200, 150, 120), (90, 50, 20)
+    matte = _disk(size, (64, 70), 34).astype(np.float32)  # the hair margin cut the hair's top off
+    near = hair & (matte > 0)
+    wrong = colour_cut(matte, rgb, head, height)  # the cut-off hair counted as background
+    right = colour_cut(matte, rgb, head, height, background=(matte < 0.02) & ~hair)
+    assert wrong[near].mean() < 0.5 and right[near].min() == 1.0

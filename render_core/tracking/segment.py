@@ -153,20 +153,22 @@ def _local_mean(rgb: np.ndarray, weight: np.ndarray, radius: int, max_side: int 
 
 
 def colour_cut(matte: np.ndarray, rgb: np.ndarray, silhouette: np.ndarray, height: float, radius: float = 0.3,
-               inset: float = 0.03, contrast: tuple[float, float] = (0.05, 0.15)) -> np.ndarray:
+               inset: float = 0.03, contrast: tuple[float, float] = (0.05, 0.15),
+               background: np.ndarray | None = None) -> np.ndarray:
     """``matte [H, W]`` lowered where, outside the fitted head's ``silhouette`` or within ``inset`` face heights
     of its edge (at least a pixel: the fit's error and the silhouette's coarse grid), the frame ``rgb [H, W, 3]``
-    (uint8) has the colour of the background beside it: B, the mean colour of the pixels the matte gives up
-    within ``radius`` face heights. A pixel within ``contrast[0]`` of B (Euclidean, RGB in [0, 1]) is
-    background, one beyond ``contrast[1]`` keeps its matte, and the matte fades linearly between. It only takes
-    away: the selfie model's spill beside the neck and behind the head, where it shows the wall, becomes
-    background; hair, ears and anything else of another colour than the wall stay (hair of the wall's own colour
-    goes too: colour cannot tell them apart). ``height``: the face's height in pixels."""
+    (uint8) has the colour of the background beside it: B, the mean colour of the ``background [H, W]`` (bool;
+    default: the pixels the matte gives up) within ``radius`` face heights. A pixel within ``contrast[0]`` of B
+    (Euclidean, RGB in [0, 1]) is background, one beyond ``contrast[1]`` keeps its matte, and the matte fades
+    linearly between. It only takes away: the selfie model's spill beside the neck and behind the head, where it
+    shows the wall, becomes background; hair, ears and anything else of another colour than the wall stay (hair
+    of the wall's own colour goes too: colour cannot tell them apart). ``height``: the face's height in pixels."""
     band = (matte > 0) & _dilated(~silhouette, max(1, round(inset * height)))
     if not band.any():
         return matte
     image = rgb.astype(np.float32) * (1.0 / 255.0)
-    B, count = _local_mean(image, (matte < 0.02).astype(np.float32), max(2, round(radius * height)))
+    wall = matte < 0.02 if background is None else background
+    B, count = _local_mean(image, wall.astype(np.float32), max(2, round(radius * height)))
     at = np.nonzero(band)
     distance = np.sqrt(np.square(image[at] - B[at]).sum(-1))
     keep = np.clip((distance - contrast[0]) / (contrast[1] - contrast[0]), 0.0, 1.0)
@@ -206,5 +208,6 @@ def head_matte(prob: np.ndarray, landmarks: np.ndarray, neck: float = 0.2, side:
         keep *= np.where(pv < eyes, above, np.where(pv < 0, beside, below))
     matte = (prob * keep).astype(np.float32, copy=False)
     if silhouette is not None and rgb is not None:
-        matte = colour_cut(matte, rgb, silhouette, height)
+        # the background's colour from what the matte gives up, but not hair above the hair margin
+        matte = colour_cut(matte, rgb, silhouette, height, background=(matte < 0.02) & ~((pv < eyes) & (prob > 0.5)))
     return matte
