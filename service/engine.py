@@ -379,9 +379,9 @@ class _Running:
         self.started = time.monotonic()
         return work()
 
-    def lead(self) -> float:
-        """How long before its expected end the next batch is formed."""
-        return max(LEAD_SECONDS, LEAD_FRACTION * self.expected)
+    def lead(self, ahead: bool = True) -> float:
+        """How long before its expected end the next batch is formed (``ahead`` False: -inf, when it ends)."""
+        return max(LEAD_SECONDS, LEAD_FRACTION * self.expected) if ahead else -math.inf
 
     def ends(self) -> float:
         """When its render should end (``time.monotonic``); not begun yet: counted from now."""
@@ -662,7 +662,8 @@ class Engine:
         while True:
             if current is not None and current.done.done():
                 current = None
-            if current is not None and (left := current.ends() - current.lead() - time.monotonic()) > 0:
+            ahead = self.settings.schedule_ahead
+            if current is not None and (left := current.ends() - current.lead(ahead) - time.monotonic()) > 0:
                 await asyncio.wait([current.done], timeout=None if math.isinf(left) else left)
                 continue
             self._wake.clear()

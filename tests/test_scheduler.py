@@ -13,7 +13,6 @@ import threading
 import time
 
 import numpy as np
-import pytest
 
 from blendsplat.v1 import render_pb2 as pb
 from render_core.bundle import write_bundle
@@ -28,7 +27,7 @@ SIZE = 32
 GAP_SECONDS = 0.0015  # measured: a median 0.3 ms between renders with the lead (a thread hand-over), 3.5 without
 
 
-def _run(tmp_path, monkeypatch, *, hog: bool, frames: int = 24) -> tuple[list[float], list[int]]:
+def _run(tmp_path, monkeypatch, *, hog: bool, ahead: bool = True, frames: int = 24) -> tuple[list[float], list[int]]:
     """Stream ``frames`` frames; returns the render thread's gaps between one render's end and the next one's
     start (seconds) and the indices of the frames delivered, in order."""
     spans: list[tuple[float, float]] = []
@@ -43,7 +42,7 @@ def _run(tmp_path, monkeypatch, *, hog: bool, frames: int = 24) -> tuple[list[fl
         return [Unencoded(np.zeros((SIZE, SIZE, 4), np.uint8), {}, len(jobs)) for _ in jobs]
 
     monkeypatch.setattr(engine_module, "_render", fake_render)
-    settings = Settings(data_dir=tmp_path / "data", warmup_size=SIZE)
+    settings = Settings(data_dir=tmp_path / "data", warmup_size=SIZE, schedule_ahead=ahead)
     write_bundle(synth_avatar(gaussians=64, blendshapes=2, seed=1), tmp_path / "a.bundle", precision="fp16")
 
     async def scenario() -> list[int]:
@@ -101,11 +100,9 @@ def test_the_next_batch_is_queued_before_the_render_thread_finishes_the_current_
     assert delivered == sorted(delivered)  # the stream's frames in order
 
 
-@pytest.mark.parametrize("lead", [-1.0])
-def test_without_the_lead_the_render_thread_waits_for_the_busy_loop(tmp_path, monkeypatch, lead):
-    """The same run with the next batch formed only when the current one ends (a negative lead): the render
+def test_without_scheduling_ahead_the_render_thread_waits_for_the_busy_loop(tmp_path, monkeypatch):
+    """The same run with ``schedule_ahead`` off (the next batch formed when the current one ends): the render
     thread waits for the loop between batches, so the test above measures the lead and not the fake render."""
-    monkeypatch.setattr(engine_module, "LEAD_SECONDS", lead)
-    monkeypatch.setattr(engine_module, "LEAD_FRACTION", 0.0)
-    gaps, _ = _run(tmp_path, monkeypatch, hog=True)
+    gaps, delivered = _run(tmp_path, monkeypatch, hog=True, ahead=False)
     assert statistics.median(gaps) >= GAP_SECONDS, [round(g * 1e3, 2) for g in gaps]
+    assert delivered == sorted(delivered)
