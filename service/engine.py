@@ -9,9 +9,7 @@
   stream goes on), so cumulative acks always mean "every frame up to here". An ack must name an index the server
   has answered (a frame, or an error for it); others are refused (``ack.index``) and acknowledge nothing.
 - One scheduler task hands ready sessions to a single render thread (the native renderer uses every core for one
-  call); sessions of the same avatar and output size that are ready together are rendered as one batched call. The
-  next batch is formed just before the current one should end and queued behind it (``LEAD_FRACTION``), so the
-  render thread never waits for the event loop between batches.
+  call); sessions of the same avatar and output size that are ready together are rendered as one batched call.
 - Encoding is off the render thread's path (``encode_threads`` > 0): after a batched render, each frame goes to its
   session's encode lane (:mod:`service.encoding`) and the render thread goes on with the next batch; the frames of
   a batch encode in parallel, a session's one at a time and in order, and are delivered in order (an error keeps
@@ -85,10 +83,6 @@ from .store import BundleStore, check_id
 
 log = logging.getLogger(__name__)
 
-# The next batch is formed this long before the render thread should finish the current one: a fifth of its expected
-# render time (a loop busy with packets wakes a few ms late), at least 2 ms.
-LEAD_FRACTION = 0.2
-LEAD_SECONDS = 0.002
 MAX_QUEUED_ERRORS = 32  # error replies waiting for a reader that does not read; more are counted, not queued
 
 
@@ -364,30 +358,6 @@ class OneShot:
             self.done.set_result(result)
 
 
-@dataclass(eq=False)
-class _Running:
-    """A batch submitted to the render thread: its sessions, the future that ends with it, its expected seconds
-    (inf: not known yet) and when its render began (``time.monotonic``, set on the render thread)."""
-
-    batch: list[Session | OneShot]
-    done: asyncio.Future
-    expected: float
-    started: float | None = None
-
-    def timed(self, work: Callable[[], Any]) -> Any:
-        """Run ``work`` on the render thread, noting when it began."""
-        self.started = time.monotonic()
-        return work()
-
-    def lead(self, ahead: bool = True) -> float:
-        """How long before its expected end the next batch is formed (``ahead`` False: -inf, when it ends)."""
-        return max(LEAD_SECONDS, LEAD_FRACTION * self.expected) if ahead else -math.inf
-
-    def ends(self) -> float:
-        """When its render should end (``time.monotonic``); not begun yet: counted from now."""
-        return (time.monotonic() if self.started is None else self.started) + self.expected
-
-
 class Engine:
     def __init__(self, settings: Settings, metrics: Metrics | None = None, *, access: Access | None = None,
                  store: BundleStore | None = None):
@@ -417,7 +387,7 @@ class Engine:
         # encoding off the render thread (0: each batch's frames are encoded on it, after the render)
         self._lanes = EncodeLanes(settings.encode_threads) if settings.encode_threads else None
         self._wake = asyncio.Event()
-        self._expected: dict[tuple, float] = {}  # batch shape (_shape) -> the seconds its last render took
+        self._busy = False
         self._vclock = 0.0  # the render time charged to the session served last (fair share's "now")
         self._scheduler: asyncio.Task | None = None
         self._guard: asyncio.Task | None = None  # ends the streams of revoked keys, and too long ones
@@ -650,68 +620,29 @@ class Engine:
         return batch
 
     async def _schedule(self) -> None:
-        """Form batches and run them on the render thread. While a batch renders, the next one is formed just
-        before the render should end (its start plus the time the last render of the same avatar, size and batch
-        size took, less a fifth of that: ``LEAD_FRACTION``, ``LEAD_SECONDS``) and queued behind it, so the render
-        thread goes straight on from one batch to the next instead of waiting for this loop to wake (a loop busy
-        with WebRTC's packets wakes late).
-        Only when every session of the rendering batch has its next pose already: one that has not would be left
-        out of the next batch and lose its turn (fair share); then, and for the first batch of its shape, the next
-        batch is formed when the current one ends."""
-        current: _Running | None = None  # the batch the render thread is on
-        while True:
-            if current is not None and current.done.done():
-                current = None
-            ahead = self.settings.schedule_ahead
-            if current is not None and (left := current.ends() - current.lead(ahead) - time.monotonic()) > 0:
-                await asyncio.wait([current.done], timeout=None if math.isinf(left) else left)
-                continue
-            self._wake.clear()
-            if all(s.ready for s in (current.batch if current else [])) and (batch := self._next_batch()):
-                queued = self._run(batch)
-                if current is not None:  # it starts when the current one ends
-                    await asyncio.wait([current.done])
-                current = queued
-                continue
-            await self._wake.wait()  # a pose, an ack, or the current batch's end (:meth:`_ended` wakes it)
-
-    def _run(self, batch: list[Session | OneShot]) -> _Running:
-        """Take the batch's poses, charge its expected render time (corrected when it ends: the next batch may be
-        formed before then) and submit its render to the render thread now, behind the one rendering."""
         loop = asyncio.get_running_loop()
-        jobs = [s.take() for s in batch]
-        expected = self._expected.get(_shape(batch))
-        self._charge(batch, jobs, expected or 0.0)
-        running = _Running(batch, loop.create_future(), math.inf if expected is None else expected)
-        entry, encoders = batch[0].entry, [s.encoder for s in batch]
-        if self._lanes is not None:  # the render thread hands the frames to the encoders and goes on
-            done = [functools.partial(self._post, loop, s, j) for s, j in zip(batch, jobs, strict=True)]
-            work = functools.partial(_render_pipelined, entry, jobs, encoders, self._lanes, done)
-        else:
-            work = functools.partial(_render_isolated, entry, jobs, encoders)
-        render = loop.run_in_executor(self._pool, running.timed, work)
-        running.done = asyncio.ensure_future(self._ended(render, batch, jobs, expected or 0.0))
-        return running
-
-    async def _ended(self, render: asyncio.Future, batch: list[Session | OneShot], jobs: list[Job],
-                     charged: float) -> None:
-        """A batch's render has ended: its results to its sessions (without encode lanes), the rest of its time
-        charged (``charged`` was, in advance)."""
-        if self._lanes is not None:
-            rendered, seconds = await render
-        else:
-            try:
-                results, seconds = await render
-            except Exception as e:  # noqa: BLE001 - cannot happen (_render_isolated returns errors)
-                results, seconds = [_attributed(e)] * len(jobs), 0.0
-            rendered = any(isinstance(r, Rendered) for r in results)
-            for session, job, result in zip(batch, jobs, results, strict=True):
-                self._delivered(session, job, result)
-        if rendered:
-            self.metrics.batch.observe(len(jobs))
-            self._expected[_shape(batch)] = seconds
-        self._charge(batch, jobs, seconds - charged)
-        self.wake()
+        while True:
+            await self._wake.wait()
+            self._wake.clear()
+            while batch := self._next_batch():
+                jobs = [s.take() for s in batch]
+                entry, encoders = batch[0].entry, [s.encoder for s in batch]
+                if self._lanes is not None:  # the render thread hands the frames to the encoders and goes on
+                    done = [functools.partial(self._post, loop, s, j) for s, j in zip(batch, jobs, strict=True)]
+                    rendered, seconds = await loop.run_in_executor(self._pool, _render_pipelined, entry, jobs,
+                                                                   encoders, self._lanes, done)
+                else:
+                    try:
+                        results, seconds = await loop.run_in_executor(self._pool, _render_isolated, entry, jobs,
+                                                                      encoders)
+                    except Exception as e:  # noqa: BLE001 - cannot happen (_render_isolated returns errors)
+                        results, seconds = [_attributed(e)] * len(jobs), 0.0
+                    rendered = any(isinstance(r, Rendered) for r in results)
+                    for session, job, result in zip(batch, jobs, results, strict=True):
+                        self._delivered(session, job, result)
+                if rendered:
+                    self.metrics.batch.observe(len(jobs))
+                self._charge(batch, jobs, seconds)
 
     def _charge(self, batch: list[Session | OneShot], jobs: list[Job], seconds: float) -> None:
         """Each entry of a batch is charged its share of the render's ``seconds`` (by estimated cost)."""
@@ -886,12 +817,6 @@ class Engine:
         info = self.adapters.delete(adapter_id)
         self.access.audit(principal, "adapter.delete", adapter_id)
         return info
-
-
-def _shape(batch: list[Session | OneShot]) -> tuple:
-    """What a batch's render time depends on: its avatar, output size and number of frames."""
-    first = batch[0]
-    return first.entry.id, first.out.width, first.out.height, len(batch)
 
 
 def _payer(entry: Session | OneShot) -> object:

@@ -34,10 +34,6 @@ class Settings(BaseSettings):
                                     "which goes on with the next batch meanwhile; a batch's frames encode in "
                                     "parallel, each stream's one at a time and in order. 0: on the render thread, "
                                     "after each batch's render")
-    schedule_ahead: bool = Field(True, description="the next batch is formed just before the render thread ends "
-                                                   "the current one and queued behind it, so the render thread "
-                                                   "does not wait for a busy event loop between batches; off: "
-                                                   "formed when the current one ends")
     raster_lazy_tiles: bool = Field(True, description="native compositing: a tile's splats gathered 64 at a time "
                                                       "and the tile stopped once every pixel has (same pixels)")
     raster_square_blocks: bool = Field(True, description="native compositing in 4x4-pixel blocks instead of 8x2 "
