@@ -55,7 +55,7 @@ class Preset:
     # one frame (``train --refine-expressions``)
     refine_expressions: bool = False
     # 200 (was 500): held-out head PSNR of `blendsplat track`'s output (data synth seed 257, tiny, 1500 iterations,
-    # --refine-expressions) 26.88 -> 27.33 dB; 100: 27.29
+    # --refine-expressions) 26.88 -> 27.33 dB (100: 27.29); seed 311 27.10 -> 27.25
     refine_poses_from: int = 200
     # Bookkeeping.
     checkpoint_every: int = 1000
