@@ -44,6 +44,58 @@ def test_rodrigues_and_its_inverse_agree():
     assert torch.allclose(matrix_to_axis_angle(R), r, atol=1e-9)
 
 
+def test_the_pose_jacobian_matches_finite_differences():
+    from render_core.tracking.fit import R0, jacobian, projection
+
+    gen = torch.Generator().manual_seed(4)
+    X = torch.randn(3, 7, 3, generator=gen, dtype=torch.float64) * 0.05  # head points, metres
+    p = torch.tensor([[0.1, -0.2, 0.05, 0.01, 0.02, 0.6], [0.0, 0.3, -0.1, -0.02, 0.0, 0.5],
+                      [-0.2, 0.0, 0.2, 0.0, -0.01, 0.7]], dtype=torch.float64)
+    c = torch.tensor([128.0, 120.0], dtype=torch.float64)
+
+    def pixels(rotation_step: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+        R = R0 @ rodrigues(p[:, :3]) @ rodrigues(rotation_step)  # the step on the right, as the fit takes it
+        return projection(X @ R.transpose(1, 2) + t[:, None], 500.0, c)[0]
+
+    R = R0 @ rodrigues(p[:, :3])
+    _, dU = projection(X @ R.transpose(1, 2) + p[:, None, 3:], 500.0, c)
+    J = jacobian(dU, R, X)  # [N, L, 2, 6]
+    eps = 1e-6
+    for k in range(6):
+        step, t = torch.zeros(3, 3, dtype=torch.float64), p[:, 3:].clone()
+        (step[:, k] if k < 3 else t[:, k - 3]).add_(eps)
+        minus_step, minus_t = torch.zeros(3, 3, dtype=torch.float64), p[:, 3:].clone()
+        (minus_step[:, k] if k < 3 else minus_t[:, k - 3]).sub_(eps)
+        numeric = (pixels(step, t) - pixels(minus_step, minus_t)) / (2 * eps)
+        assert torch.allclose(J[..., k], numeric, atol=1e-4, rtol=1e-6), k
+
+
+def test_the_normal_equations_are_those_of_the_weighted_jacobian():
+    """normal_equations (float32 inside, one buffer) against J^T W J and J^T W r built plainly in float64."""
+    from render_core.tracking.fit import Problem, jacobian, normal_equations, projection
+
+    problem = Problem(open_head())
+    gen = torch.Generator().manual_seed(5)
+    n, L = 4, problem.L
+    rotation = torch.randn(n, 3, generator=gen, dtype=torch.float64) * 0.2
+    R = rodrigues(rotation)
+    X = problem.anchors(rotation) + torch.einsum("nk,klc->nlc", torch.rand(n, 52, generator=gen,
+                                                                            dtype=torch.float64) * 0.3, problem.B)
+    _, dU = projection(X @ R.transpose(1, 2) + torch.tensor([0.0, 0.0, 0.6], dtype=torch.float64), 900.0,
+                       torch.tensor([256.0, 256.0], dtype=torch.float64))
+    w = torch.rand(n, L, generator=gen, dtype=torch.float64)
+    r = torch.randn(n, L, 2, generator=gen, dtype=torch.float64)
+    expressions = (dU @ R[:, None]) @ problem.Bt  # [N, L, 2, 52]: d(pixels)/d(expression), per frame and point
+    for Bt, J in ((None, jacobian(dU, R, X)), (problem.Bt, torch.cat([jacobian(dU, R, X), expressions], -1))):
+        J = J.reshape(n, 2 * L, -1)
+        W = w.repeat_interleave(2, 1)[..., None]
+        H, g = normal_equations(dU, R, X, Bt, w, r)
+        H_ref, g_ref = J.transpose(1, 2) @ (W * J), J.transpose(1, 2) @ (W * r.reshape(n, -1, 1))
+        assert H.dtype == g.dtype == torch.float64 and H.shape == H_ref.shape and g.shape == g_ref.shape
+        assert torch.allclose(H, H_ref, rtol=1e-4, atol=1e-3 * H_ref.abs().max().item() * 1e-3)
+        assert torch.allclose(g, g_ref, rtol=1e-4, atol=1e-3 * g_ref.abs().max().item() * 1e-3)
+
+
 def test_the_shipped_correspondence_is_what_the_builder_makes():
     shipped = load_correspondence(SHIPPED)
     built, report = build_correspondence()

@@ -28,6 +28,42 @@ def astronaut() -> np.ndarray:
     return data.astronaut()
 
 
+# --------------------------------------------------------------------------------------------------- the crops
+@pytest.mark.parametrize("k", [1, 2, 3])
+def test_a_crop_samples_the_image_where_its_rect_maps_each_pixel(k):
+    """A linear ramp stays linear through block means and bilinear sampling, so every crop pixel must read the ramp
+    at Rect.to_image of its centre: rotated, mirrored and shrinking crops alike."""
+    from render_core.tracking.geometry import Rect, crop
+
+    H, W = 300, 400
+    y, x = np.mgrid[0:H, 0:W] + 0.5  # pixel centres
+    ramp = np.stack([0.5 * x + 0.25 * y, 200 - 0.3 * x + 0.1 * y], -1).astype(np.float32)
+    rng = np.random.default_rng(k)
+    for _ in range(6):
+        out = int(rng.integers(24, 64))
+        side = out * (k + rng.uniform(0.0, 0.9))
+        rect = Rect(rng.uniform(150, 250), rng.uniform(120, 180), side, side * rng.uniform(0.9, 1.0),
+                    rng.uniform(-0.6, 0.6), bool(rng.integers(2)))
+        got = crop(ramp, rect, out, out)
+        v, u = np.mgrid[0:out, 0:out] + 0.5
+        at = rect.to_image(np.stack([u, v], -1), out, out)
+        want = np.stack([0.5 * at[..., 0] + 0.25 * at[..., 1], 200 - 0.3 * at[..., 0] + 0.1 * at[..., 1]], -1)
+        assert np.abs(got - want).max() < 0.05, (rect, np.abs(got - want).max())
+    outside = crop(ramp, Rect(-500.0, -500.0, 50.0, 50.0), 16, 16)
+    assert outside.shape == (16, 16, 2) and not outside.any()
+
+
+def test_a_box_shrink_is_the_mean_of_whole_blocks():
+    import torch
+    import torch.nn.functional as F
+
+    from render_core.tracking.geometry import box_shrink
+
+    images = torch.rand(2, 3, 37, 50, generator=torch.Generator().manual_seed(0))
+    for k in (1, 2, 3, 5):
+        assert torch.allclose(box_shrink(images, k), F.avg_pool2d(images, k), atol=1e-6)
+
+
 # -------------------------------------------------------------------------------------------------- the models
 def test_the_shipped_models_match_their_manifest():
     assert fetch_models.check() == []
@@ -286,6 +322,13 @@ def test_short_gaps_are_interpolated_and_long_ones_dropped_with_reasons(syntheti
     assert list(track.kept) == [0, 1, 2, 3, 4, 9]
     late = track_landmarks([blank, frames[0]], max_gap=2)
     assert late.dropped == [(0, 0, "before the face was first found")]
+
+
+def test_irises_found_beside_the_tracker_are_those_found_in_turn(synthetic):
+    frames = synthetic[0]
+    serial, pipelined = track_landmarks(frames, threads=1), track_landmarks(frames, threads=2)
+    assert serial.status == pipelined.status and not np.isnan(pipelined.iris).any()
+    assert np.array_equal(serial.landmarks, pipelined.landmarks) and np.array_equal(serial.iris, pipelined.iris)
 
 
 def test_the_tracker_redetects_a_lost_face(synthetic):

@@ -15,9 +15,11 @@ import time
 from pathlib import Path
 
 import numpy as np
+import torch
 
 
-def bench_track(seeds: tuple[int, ...] = (123,), frames: int = 150, size: int = 512, threads: int = 1) -> dict:
+def bench_track(seeds: tuple[int, ...] = (123,), frames: int = 150, size: int = 512,
+                threads: int | None = None) -> dict:
     from ..data.portable import read_dataset
     from ..facemodel.open_head import open_head
     from ..tracking.known_answer import known_answer, synth_video
@@ -44,7 +46,8 @@ def bench_track(seeds: tuple[int, ...] = (123,), frames: int = 150, size: int = 
     def median(get) -> float:
         return round(float(np.median([get(r) for r in runs])), 3)
 
-    return {"frames": frames, "size": size, "seeds": list(seeds), "threads": threads, "runs": runs,
+    return {"frames": frames, "size": size, "seeds": list(seeds), "threads": threads or torch.get_num_threads(),
+            "runs": runs,
             "landmarks_and_fit_fps": median(lambda r: r["frames_per_second"]["landmarks_and_fit"]),
             "whole_fps": median(lambda r: r["frames_per_second"]["whole"]),
             "median_vertex_px": median(lambda r: r["known_answer"]["median_vertex_px"]),

@@ -63,7 +63,8 @@ def rect_from_points(points: np.ndarray, angle: float, scale: float = 1.0, squar
 def crop(img: np.ndarray, rect: Rect, out_w: int, out_h: int) -> np.ndarray:
     """The ``out_h`` x ``out_w`` crop of ``img [H, W]`` or ``[H, W, C]`` (any dtype) as float32 ``[out_h, out_w, C]``
     in the input's units, bilinear, zero outside the image. A crop shrinking the image by k >= 2 first averages
-    k x k blocks of the region it covers (no aliasing). Only that region is converted to float."""
+    k x k blocks of the region it covers (no aliasing). Only that region is converted to float. The sampling grid is
+    affine in the crop's pixels: built from its first row and column, not mapped point by point."""
     src = img[..., None] if img.ndim == 2 else img
     H, W = src.shape[:2]
     c = rect.corners()
@@ -75,16 +76,29 @@ def crop(img: np.ndarray, rect: Rect, out_w: int, out_h: int) -> np.ndarray:
     x0, y0 = x0 - x0 % k, y0 - y0 % k
     if x1 - x0 < k or y1 - y0 < k:  # entirely outside the image
         return np.zeros((out_h, out_w, src.shape[2]), dtype=np.float32)
-    region = torch.from_numpy(np.ascontiguousarray(src[y0:y1, x0:x1])).permute(2, 0, 1)[None].float()
-    if k >= 2:
-        region = F.avg_pool2d(region, k)
-    u = torch.arange(out_w, dtype=torch.float64) + 0.5
-    v = torch.arange(out_h, dtype=torch.float64) + 0.5
-    xy = torch.from_numpy(rect.to_image(np.stack(np.meshgrid(u.numpy(), v.numpy()), -1), out_w, out_h))
+    # float in numpy's [h, w, C] order, then viewed as [1, C, h, w] (a copy to channels first is 4x slower here)
+    region = box_shrink(torch.from_numpy(src[y0:y1, x0:x1].astype(np.float32)).permute(2, 0, 1)[None], k)
     h, w = region.shape[2:]
-    grid = torch.stack([2 * (xy[..., 0] - x0) / (k * w) - 1, 2 * (xy[..., 1] - y0) / (k * h) - 1], -1)
-    out = F.grid_sample(region, grid[None].float(), mode="bilinear", padding_mode="zeros", align_corners=False)
+    # crop pixel (u, v) -> image rect.to_image(u, v) = centre + s w ax / 2 + t h ay / 2 with s = 2 (u + 1/2) / out_w
+    # - 1 and t likewise (pixel centres); the region's grid coordinate of an image point x is 2 (x - x0) / (k w) - 1
+    ax, ay = rect.axes()
+    s = np.arange(0.5, out_w) * (2.0 / out_w) - 1
+    t = np.arange(0.5, out_h)[:, None] * (2.0 / out_h) - 1
+    gx = (2 * (rect.cx - x0 + s * (rect.w * ax[0] / 2) + t * (rect.h * ay[0] / 2)) / (k * w) - 1)
+    gy = (2 * (rect.cy - y0 + s * (rect.w * ax[1] / 2) + t * (rect.h * ay[1] / 2)) / (k * h) - 1)
+    grid = torch.from_numpy(np.stack([gx, gy], -1).astype(np.float32))[None]
+    out = F.grid_sample(region, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
     return out[0].permute(1, 2, 0).numpy()
+
+
+def box_shrink(images: torch.Tensor, k: int) -> torch.Tensor:
+    """``[..., H, W]`` -> the means of its whole k x k blocks ``[..., H // k, W // k]`` (as ``avg_pool2d(images,
+    k)``, 3-4x faster on the CPU): sums of k strided rows, then of k strided columns."""
+    if k == 1:
+        return images
+    images = images[..., :images.shape[-2] // k * k, :images.shape[-1] // k * k]
+    rows = sum(images[..., i::k, :] for i in range(k))
+    return sum(rows[..., i::k] for i in range(k)) * (1.0 / (k * k))
 
 
 def resize(img: np.ndarray, out_w: int, out_h: int) -> np.ndarray:

@@ -73,7 +73,8 @@ def track_video(video: str | os.PathLike, out: str | os.PathLike, *, fps: float 
     ``write``; no paths in them) and may raise to stop the tracking (a cancelled job). ``limits``: the video's
     (default :class:`~.video.VideoLimits`). ``focal``: the focal length in pixels of the output frames when it is
     known (a phone records it), instead of searching it from the landmarks (:func:`~.fit.search_focal`).
-    ``photometric``: refine the head poses on the frames' pixels after the landmark fit (:mod:`.photometric`). Fewer
+    ``photometric``: refine the head poses on the frames' pixels after the landmark fit (:mod:`.photometric`).
+    ``threads``: CPU threads (None: torch's default, the machine's cores; 1: one core, as the job workers run). Fewer
     than ``min_frames`` frames with a face is a ``TrackingError`` on
     ``frames`` (too short)."""
     from ..data.generate import held_out_count
