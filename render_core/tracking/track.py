@@ -65,7 +65,7 @@ def _sheet(tiles: list[np.ndarray], path: Path) -> Path:
 
 
 def track_video(video: str | os.PathLike, out: str | os.PathLike, *, fps: float | None = None, size: int = 512,
-                crop: str = "auto", max_seconds: float | None = None, threads: int | None = 1,
+                crop: str = "auto", max_seconds: float | None = None, threads: int | None = None,
                 progress: Callable[[str], None] | None = None, limits: VideoLimits | None = None,
                 min_frames: int = MIN_FRAMES, focal: float | None = None, photometric: bool = True) -> dict:
     """Track ``video`` into the dataset folder ``out`` (module docstring); returns the report: frames_kept,
@@ -77,9 +77,9 @@ def track_video(video: str | os.PathLike, out: str | os.PathLike, *, fps: float 
     (default :class:`~.video.VideoLimits`). ``focal``: the focal length in pixels of the output frames when it is
     known (a phone records it), instead of searching it from the landmarks (:func:`~.fit.search_focal`).
     ``photometric``: refine the head poses on the frames' pixels after the landmark fit (:mod:`.photometric`).
-    ``threads``: CPU threads (None: torch's default, the machine's cores; 1: one core, as the job workers run). Fewer
-    than ``min_frames`` frames with a face is a ``TrackingError`` on
-    ``frames`` (too short)."""
+    ``threads``: CPU threads (default None: torch's, the machine's cores, as the CLI and the job workers run; 1:
+    one core: the irises and the mattes made in turn on the calling thread). Fewer than ``min_frames`` frames with
+    a face is a ``TrackingError`` on ``frames`` (too short)."""
     from ..data.generate import held_out_count
     from ..data.portable import Tracking, write_dataset
     from ..facemodel.open_head import open_head

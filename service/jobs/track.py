@@ -123,7 +123,7 @@ def _track(run: JobRun, video: Path, workdir: Path, size: int) -> dict[str, Any]
 
     out = workdir / TRACKED
     s = run.worker.settings
-    report = track_video(video, out, size=size, crop="auto", threads=1, progress=_progress(run),
+    report = track_video(video, out, size=size, crop="auto", threads=None, progress=_progress(run),
                          limits=video_limits(s.max_video_seconds, s.max_video_side, s.max_video_frames),
                          min_frames=MIN_VIDEO_FRAMES)  # fewer frames with a face: the tracker's "too short"
     _check(run)
