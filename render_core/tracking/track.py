@@ -133,8 +133,9 @@ def track_video(video: str | os.PathLike, out: str | os.PathLike, *, fps: float 
     where = {int(f): k for k, f in enumerate(kept)}
     if photometric:
         say(f"fit: refining {n} poses on the pixels")
-        chunks, decode_before = _grey_chunks(reader, max_seconds, where, window, timing), timing["decode"]
-        fit = refine_poses(model, fit, landmarks[kept], iris[kept], chunks, threads=threads)
+        decode_before = timing["decode"]
+        fit = refine_poses(model, fit, landmarks[kept], iris[kept],
+                           lambda: _grey_chunks(reader, max_seconds, where, window, timing), threads=threads)
         t0 += timing["decode"] - decode_before  # the second decode counts as decoding
     timing["fit"] = time.perf_counter() - t0
 
