@@ -273,3 +273,28 @@ def test_masks_made_on_worker_threads_come_back_in_order_and_bounded():
 
     with pytest.raises(ValueError, match="frame 5"):
         list(_with_masks(frames(), broken, 2))
+
+
+def test_the_second_pass_takes_each_points_colour_from_the_whole_video(monkeypatch):
+    """refine_poses: on the first pass a chunk's colours add the chunks before it; on the second, every other
+    chunk's sums from the first pass (the chunk's own come fresh from its refined poses)."""
+    from render_core.tracking import photometric
+    from render_core.tracking.fit import R0, FitResult
+
+    n, seen = 6, []
+
+    def fake_chunk(problem, model, p, obs, images, f, c, points, others=None):
+        seen.append(None if others is None else others.clone())
+        mark = float(images[0, 0, 0])  # which chunk: its frames carry its number
+        return p, torch.full((len(photometric.SCHEDULE), 2, 3), mark, dtype=torch.float64)
+
+    monkeypatch.setattr(photometric, "refine_chunk", fake_chunk)
+    fit = FitResult(np.diag([500.0, 500.0, 1.0]), np.broadcast_to(R0.numpy(), (n, 3, 3)).copy(),
+                    np.tile([0.0, 0.0, 0.6], (n, 1)), np.zeros((n, 52)), np.zeros(n), [])
+    chunks = [([0, 1], np.full((2, 4, 4), 1.0, np.float32)), ([2, 3], np.full((2, 4, 4), 2.0, np.float32)),
+              ([4, 5], np.full((2, 4, 4), 4.0, np.float32))]
+    photometric.refine_poses(open_head(), fit, np.zeros((n, 468, 3)), np.zeros((n, 2, 5, 3)), lambda: iter(chunks),
+                             passes=2)
+    values = [None if o is None else float(o.flatten()[0]) for o in seen]
+    # pass 1 (sums 1, 2, 4): nothing before the first chunk, then the running sums; pass 2: the other chunks' sums
+    assert values == [None, 1.0, 3.0, 6.0, 5.0, 3.0]
