@@ -100,8 +100,11 @@ def refine_chunk(problem: Problem, model, p: torch.Tensor, obs: torch.Tensor, im
                  c: torch.Tensor, points: torch.Tensor, others: torch.Tensor | None = None
                  ) -> tuple[torch.Tensor, torch.Tensor]:
     """One chunk: ``p [N, 58]`` (rotation, translation, expressions, as :func:`.fit.solve` has them), its landmark
-    observations ``obs [N, L, 2]`` and grey frames ``images [N, H, W]`` -> ``p`` with the pose refined. The pixel
-    terms are computed in float32 (2x faster than float64; the poses agree to 1e-5), the steps in float64."""
+    observations ``obs [N, L, 2]`` and grey frames ``images [N, H, W]`` -> (``p`` with the pose refined, the
+    chunk's colour sums ``[levels, 2, M]``: per pyramid level, each point's summed grey level and its views, with the
+    poses at the level's start). ``others``: such sums of other frames, added to the chunk's own for the colours.
+    The pixel terms are computed in float32 (2x faster than float64; the poses agree to 1e-5), the steps in
+    float64."""
     n, H, W = images.shape
     levels = _pyramid(torch.from_numpy(images)[:, None], max(level for level, _ in SCHEDULE) + 1)
     normals = _normals(model)[points].float()
