@@ -108,7 +108,8 @@ def test_the_demo_page_shows_the_frames_the_modules_websocket_stream_brings(live
         box.click()  # frames from the slider only
     driver.execute_script("const el = document.getElementById('camera-yaw'); el.value = el.max;"
                           "el.dispatchEvent(new Event('input', {bubbles: true}));")
-    before = driver.execute_script(IMAGE_STATS, "view")
+    # a new frame may be mid-decode (its blob set, the image not complete yet): wait for one that is whole
+    before = _wait(driver, "a decoded frame", lambda d: d.execute_script(IMAGE_STATS, "view"))
     assert before["index"] >= first["index"]
     turned = _wait(driver, "the head turned by the camera slider", lambda d: (
         (s := d.execute_script(IMAGE_STATS, "view")) and s["index"] > before["index"]
