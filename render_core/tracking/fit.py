@@ -123,12 +123,6 @@ def matrix_to_axis_angle(m: torch.Tensor) -> torch.Tensor:
     return v * torch.where(s > 1e-12, angle / s.clamp_min(1e-12), torch.full_like(s, 2.0))
 
 
-def skew(v: torch.Tensor) -> torch.Tensor:
-    x, y, z = v.unbind(-1)
-    o = torch.zeros_like(x)
-    return torch.stack([o, -z, y, z, o, -x, -y, x, o], -1).reshape(v.shape[:-1] + (3, 3))
-
-
 def projection(Xc: torch.Tensor, f: float, c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Camera points ``[N, M, 3]`` -> pixels ``[N, M, 2]`` and d(pixels)/d(camera point) ``[N, M, 2, 3]``
     (``f / z [[1, 0, -x/z], [0, 1, -y/z]]``)."""
@@ -142,9 +136,19 @@ def projection(Xc: torch.Tensor, f: float, c: torch.Tensor) -> tuple[torch.Tenso
 def jacobian(dU: torch.Tensor, R: torch.Tensor, X: torch.Tensor) -> torch.Tensor:
     """The reprojection's Jacobian in the pose ``[N, L, C, 6]``: rotation (a step on the right), then translation;
     ``dU [N, L, C, 3]`` = d(u, v)/d(camera point) (C = 2; 1 for a scalar of the point), ``X [N, L, 3]`` the points
-    (head coordinates). The rotation block, ``-dU R skew(X)``, is ``X x (dU R)`` row by row: one [C L, 3] @ [3, 3]
-    product per frame and a cross product (the N L C products of [1, 3] @ [3, 3] were 1.7x slower)."""
-    dUR = (dU.reshape(dU.shape[0], -1, 3) @ R).view_as(dU)
+    (head coordinates)."""
+    return _pose_jacobian(dU, _head_derivative(dU, R), X)
+
+
+def _head_derivative(dU: torch.Tensor, R: torch.Tensor) -> torch.Tensor:
+    """d(u, v)/d(head point) = ``dU R`` ``[N, L, C, 3]``: one [C L, 3] @ [3, 3] product per frame (the N L products
+    of [C, 3] @ [3, 3] were 1.7x slower)."""
+    return (dU.reshape(dU.shape[0], -1, 3) @ R).view_as(dU)
+
+
+def _pose_jacobian(dU: torch.Tensor, dUR: torch.Tensor, X: torch.Tensor) -> torch.Tensor:
+    """:func:`jacobian` from ``dU`` and ``dUR`` (:func:`_head_derivative`): the rotation block, ``-dU R [X]x``, is
+    ``X x (dU R)`` row by row."""
     return torch.cat([torch.linalg.cross(X.unsqueeze(-2).expand_as(dUR), dUR, dim=-1), dU], -1)
 
 
@@ -159,11 +163,12 @@ def normal_equations(dU: torch.Tensor, R: torch.Tensor, X: torch.Tensor, Bt: tor
     converted for the product (measured: 150 frames, 430 points); the known answer is unchanged."""
     n, L = dU.shape[:2]
     sw = w.sqrt()[..., None, None]
-    dUw, Rf = (dU * sw).float(), R.float()
+    dUw = (dU * sw).float()
+    dURw = _head_derivative(dUw, R.float())
     J = torch.empty(n, L, 2, 6 + (0 if Bt is None else Bt.shape[-1]), dtype=torch.float32)
-    J[..., :6] = jacobian(dUw, Rf, X.float())
+    J[..., :6] = _pose_jacobian(dUw, dURw, X.float())
     if Bt is not None:
-        per_landmark = (dUw @ Rf[:, None]).permute(1, 0, 2, 3).reshape(L, 2 * n, 3) @ Bt.float()  # [L, 2N, K]
+        per_landmark = dURw.permute(1, 0, 2, 3).reshape(L, 2 * n, 3) @ Bt.float()  # [L, 2N, K]
         J[..., 6:] = per_landmark.view(L, n, 2, -1).permute(1, 0, 2, 3)
     J = J.view(n, 2 * L, -1)
     Jt = J.transpose(1, 2)
