@@ -52,4 +52,5 @@ def bench_track(seeds: tuple[int, ...] = (123,), frames: int = 150, size: int = 
             "whole_fps": median(lambda r: r["frames_per_second"]["whole"]),
             "median_vertex_px": median(lambda r: r["known_answer"]["median_vertex_px"]),
             "median_head_rotation_deg": median(lambda r: r["known_answer"]["median_head_rotation_deg"]),
-            "median_jaw_deg": median(lambda r: r["known_answer"]["median_jaw_deg"])}
+            "median_jaw_deg": median(lambda r: r["known_answer"]["median_jaw_deg"]),
+            "mean_expression_mm": median(lambda r: r["known_answer"]["mean_expression_mm"])}

@@ -552,7 +552,7 @@ def cmd_track(args: argparse.Namespace) -> int:
 
     report = track_video(args.video, args.out, fps=args.fps, size=args.size, crop=args.crop,
                          max_seconds=args.max_seconds, progress=stderr_progress, focal=args.focal,
-                         photometric=args.photometric == "on", threads=args.threads)
+                         photometric=args.photometric, threads=args.threads)
     if args.json:
         _emit(report, indent=None)
     else:
@@ -574,9 +574,10 @@ def _add_track_command(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--focal", type=float, default=None,
                    help="the focal length in pixels of the output frames, when known (e.g. from the phone's "
                         "metadata, scaled to --size); default: estimated from the landmarks")
-    s.add_argument("--photometric", choices=("on", "off"), default="on",
-                   help="refine the head poses on the frames' pixels after the landmark fit (default on; off for a "
-                        "video whose light changes strongly as the head turns)")
+    s.add_argument("--photometric", choices=("on", "poses", "off"), default="on",
+                   help="after the landmark fit, refine the head poses and then the expressions on the frames' "
+                        "pixels (default on), the poses only, or neither (off: for a video whose light changes "
+                        "strongly as the head turns)")
     s.add_argument("--threads", type=int, default=None,
                    help="CPU threads (default: torch's, the machine's cores); 1: one core, the irises found in turn "
                         "with the face mesh rather than beside it")

@@ -6,8 +6,10 @@ surface vertices (the skin: eyeballs, teeth and tongue left out, front- and back
 camera, frame by frame, and reports the median (and 90th percentile) pixel distance between the two, the head's
 rotation error (the head joint's orientation in the camera, degrees) and the jaw's (the opening angle of the
 chin about the jaw joint, from ``jawOpen`` - where the open head's trackings keep the jaw - and the jaw joint's
-rotation, degrees). :func:`encode_h264` makes the ordinary video a phone would: the frames as H.264 (yuv420p);
-:func:`synth_video` a known-answer video: a ``data synth`` dataset (the truth) and its frames so encoded.
+rotation, degrees), and the expressions' (the mean distance, mm, by which the two trackings' expression
+coefficients move the open head's vertices apart, pose aside). :func:`encode_h264` makes the ordinary video a
+phone would: the frames as H.264 (yuv420p); :func:`synth_video` a known-answer video: a ``data synth`` dataset (the
+truth) and its frames so encoded.
 """
 
 from __future__ import annotations
@@ -65,6 +67,22 @@ def jaw_degrees(model, tracking) -> np.ndarray:
     return np.degrees(angle)
 
 
+def expression_mm(model, truth, tracked) -> np.ndarray:
+    """Per frame, the mean distance (mm) over the open head's vertices between the two trackings' expressions
+    (coefficients matched by name, a missing one 0), each applied to the template through the expression basis."""
+    def coefficients(tracking) -> torch.Tensor:
+        e = torch.zeros(len(tracking.expression), model.num_expressions, dtype=torch.float64)
+        for k, name in enumerate(model.expression_names):
+            if name in tracking.expression_names:
+                e[:, k] = torch.from_numpy(np.asarray(tracking.expression[:, tracking.expression_names.index(name)],
+                                                      np.float64))
+        return e
+
+    delta = coefficients(tracked) - coefficients(truth)
+    moved = torch.einsum("nk,kvc->nvc", delta, model.expression_basis.double())
+    return (moved.norm(dim=-1).mean(1) * 1000).numpy()
+
+
 def known_answer(model, truth, tracked) -> dict:
     """The figures of the module docstring for two trackings of the same frames (``Tracking`` objects)."""
     if len(truth.expression) != len(tracked.expression):
@@ -81,7 +99,8 @@ def known_answer(model, truth, tracked) -> dict:
     return {"frames": len(truth.expression), "median_vertex_px": round(float(err.median()), 3),
             "p90_vertex_px": round(float(err.quantile(0.9)), 3),
             "median_head_rotation_deg": round(float(rotation.median()), 3),
-            "max_head_rotation_deg": round(float(rotation.max()), 3), "median_jaw_deg": round(float(np.median(jaw)), 3)}
+            "max_head_rotation_deg": round(float(rotation.max()), 3), "median_jaw_deg": round(float(np.median(jaw)), 3),
+            "mean_expression_mm": round(float(expression_mm(model, truth, tracked).mean()), 3)}
 
 
 def encode_h264(frames, path: str | Path, fps: int = 30, crf: int = 14) -> Path:

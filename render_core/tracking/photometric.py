@@ -27,6 +27,20 @@ cos > 0.3 (median vertex error 2.1-2.9 -> 0.9-2.3 px); then, seeds 223, 311, 412
 and 888, held out of that choice: 1.87 -> 1.39 px, 0.99 -> 0.60 degrees); a third pass gave 1.25 px. About 1 s
 per pass per 150 frames on 2 cores.
 
+Then one more pass (:data:`EXPRESSION_PASSES`) refines each frame's pose and expressions together: the points are
+:data:`EXPRESSION_POINTS` skin vertices the expressions DO move (brows, lids, cheeks, lips, chin) beside
+:data:`EXPRESSION_RIGID` of the still ones, each posed with the frame's expressions as they stand (``X = T + B e``),
+the Jacobian of a grey level with respect to an expression ``dG R B_k`` (:func:`pixel_jacobian`), the landmark fit's
+residuals and its prior on the expressions (``EXPRESSION_WEIGHT``), the coefficients clamped to [0, 1], and a
+shorter schedule (:data:`EXPRESSION_SCHEDULE`). The pixels weigh :data:`EXPRESSION_PIXEL_WEIGHT` here: ten times
+less than in the pose passes (at 1e4 the 52 coefficients chase the H.264 noise: their error rose 0.85 -> 1.27 mm).
+The gaze (``eyeLook*``) stays the landmark fit's: the eyeballs are not among the points, and the irises say more.
+On the known-answer videos at 256 px (seeds 257, 311, 223) the expressions' error (the mean distance by which they
+move the head's vertices away from the truth's, ``known_answer``'s ``mean_expression_mm``) 0.81 -> 0.62 mm, their
+correlation with the truth's (mean over the coefficients that vary) 0.34 -> 0.56, the median vertex error 0.76 ->
+0.63 px, the head rotation 0.84 -> 0.85 deg; at 512 px (seeds 223, 311) 0.84 -> 0.82 mm, 0.34 -> 0.52, 1.41 -> 1.29
+px, 0.64 -> 0.80 deg.
+
 Limits: it assumes a point's brightness stays put through the video (shading that moves with the head, as ``data
 synth`` renders it, or soft, even light); a strong light fixed in the room while the head turns breaks that, and
 the Huber weights then leave the landmarks in charge. Hair and the neck are not on the open head and are not used.
@@ -40,10 +54,24 @@ import numpy as np
 import torch
 import torch.nn.functional as nnf
 
-from .fit import R0, FitResult, Problem, jacobian, matrix_to_axis_angle, normal_equations, projection, rodrigues
+from .fit import (
+    EXPRESSION_WEIGHT,
+    R0,
+    FitResult,
+    Problem,
+    jacobian,
+    matrix_to_axis_angle,
+    normal_equations,
+    projection,
+    rodrigues,
+)
 from .geometry import box_shrink
 
 PASSES = 2
+EXPRESSION_PASSES = 1
+EXPRESSION_POINTS = 2000
+EXPRESSION_RIGID = 500
+EXPRESSION_PIXEL_WEIGHT = 1e3
 CHUNK = 96  # frames refined together (their colours shared): ~130 MB of float32 image pyramid
 POINTS = 1500
 MAX_EXPRESSION_MM = 2.0
@@ -52,6 +80,7 @@ MIN_FACING = 0.0  # cos of the angle between a point's normal and the ray to the
 PHOTOMETRIC_WEIGHT = 1e5  # px^2 per grey level^2 (0-1): a 0.01 grey error weighs as a 3 px landmark error
 HUBER_GREY = 0.05
 SCHEDULE = ((2, 3), (1, 3), (0, 3))  # (pyramid level, Gauss-Newton steps), coarse to fine
+EXPRESSION_SCHEDULE = ((1, 2), (0, 2))
 GREY = (0.299, 0.587, 0.114)
 
 
@@ -60,15 +89,16 @@ def grey(rgb: np.ndarray) -> np.ndarray:
     return (rgb.astype(np.float32) @ np.array(GREY, np.float32)) / 255.0
 
 
-def rigid_points(model, count: int = POINTS) -> torch.Tensor:
-    """The indices of up to ``count`` skin vertices that the expressions hardly move (module docstring); a fixed,
-    seeded choice so that a run is repeatable."""
+def rigid_points(model, count: int = POINTS, moving: bool = False) -> torch.Tensor:
+    """The indices of up to ``count`` skin vertices that the expressions hardly move (module docstring), or with
+    ``moving`` those they move more; a fixed, seeded choice so that a run is repeatable."""
     disp = model.expression_basis.double().norm(dim=-1).amax(0)
     skin = torch.ones(model.num_vertices, dtype=torch.bool)
     for group in ("eyeball_l", "eyeball_r", "teeth_upper", "teeth_lower", "tongue"):
         if group in model.vertex_groups:
             skin[model.vertex_groups[group]] = False
-    idx = torch.nonzero(skin & (disp < MAX_EXPRESSION_MM / 1000))[:, 0]
+    still = disp < MAX_EXPRESSION_MM / 1000
+    idx = torch.nonzero(skin & (~still if moving else still))[:, 0]
     if len(idx) > count:
         idx = idx[torch.randperm(len(idx), generator=torch.Generator().manual_seed(0))[:count]]
     return idx
@@ -96,26 +126,54 @@ def _sample(image: torch.Tensor, u: torch.Tensor, scale: int) -> torch.Tensor:
     return torch.stack([v[:, 0], (v[:, 1] - v[:, 2]) / (2 * scale), (v[:, 3] - v[:, 4]) / (2 * scale)], -1)
 
 
+def refined_expressions(model) -> torch.Tensor:
+    """The indices of the expressions the pixels refine: all but the gaze (``eyeLook*``: the eyeballs are not among
+    the points, and the irises of the landmark fit say more of it)."""
+    return torch.tensor([k for k, name in enumerate(model.expression_names) if not name.startswith("eyeLook")],
+                        dtype=torch.int64)
+
+
+def pixel_jacobian(dG: torch.Tensor, R: torch.Tensor, X: torch.Tensor, B: torch.Tensor | None = None) -> torch.Tensor:
+    """The grey levels' Jacobian ``[N, M, 6 (+ K)]`` from their gradient with respect to the camera-space points
+    ``dG [N, M, 1, 3]``: the pose block (:func:`.fit.jacobian`: rotation on the right, translation) and, with the
+    points' expression basis ``B [K, M, 3]``, the expressions' (``dG R B_k``: the points move by ``B_k`` in the
+    head's frame)."""
+    if B is None:
+        return jacobian(dG, R, X)[:, :, 0]
+    J = dG.new_empty(dG.shape[0], dG.shape[1], 6 + B.shape[0])
+    J[..., :6] = jacobian(dG, R, X)[:, :, 0]
+    a = dG[:, :, 0] @ R  # [N, M, 3]: d(grey)/d(head-frame point)
+    Bm = B.permute(2, 1, 0)  # [3, M, K]
+    torch.mul(a[..., 0:1], Bm[0], out=J[..., 6:])  # a sum over the 3 axes, without an [N, M, K, 3] product
+    J[..., 6:].addcmul_(a[..., 1:2], Bm[1]).addcmul_(a[..., 2:3], Bm[2])
+    return J
+
+
 def refine_chunk(problem: Problem, model, p: torch.Tensor, obs: torch.Tensor, images: np.ndarray, f: float,
-                 c: torch.Tensor, points: torch.Tensor, others: torch.Tensor | None = None
+                 c: torch.Tensor, points: torch.Tensor, others: torch.Tensor | None = None, expressions: bool = False
                  ) -> tuple[torch.Tensor, torch.Tensor]:
     """One chunk: ``p [N, 58]`` (rotation, translation, expressions, as :func:`.fit.solve` has them), its landmark
-    observations ``obs [N, L, 2]`` and grey frames ``images [N, H, W]`` -> (``p`` with the pose refined, the
+    observations ``obs [N, L, 2]`` and grey frames ``images [N, H, W]`` -> (``p`` refined, the
     chunk's colour sums ``[levels, 2, M]``: per pyramid level, each point's summed grey level and its views, with the
     poses at the level's start). ``others``: such sums of other frames, added to the chunk's own for the colours.
     The pixel terms are computed in float32 (2x faster than float64; the poses agree to 1e-5), the steps in
-    float64."""
+    float64. ``expressions``: the 52 expressions are refined too (the points then include ones they move; their
+    Jacobian through the basis, the landmark fit's prior and [0, 1] bounds), else they are held."""
     n, H, W = images.shape
-    levels = _pyramid(torch.from_numpy(images)[:, None], max(level for level, _ in SCHEDULE) + 1)
+    schedule = EXPRESSION_SCHEDULE if expressions else SCHEDULE
+    levels = _pyramid(torch.from_numpy(images)[:, None], max(level for level, _ in schedule) + 1)
     normals = _normals(model)[points].float()
-    X = (model.template.double()[points][None]
-         + torch.einsum("nk,kmc->nmc", p[:, 6:], model.expression_basis.double()[:, points])).float()
-    Xl_expr = torch.einsum("nk,klc->nlc", p[:, 6:], problem.B)
+    T, B = model.template[points].float(), model.expression_basis[:, points].float()  # [M, 3], [52, M, 3]
+    free = refined_expressions(model) if expressions else torch.zeros(0, dtype=torch.int64)
+    Bf, Btf, active = B[free], problem.Bt[..., free].contiguous(), 6 + len(free)
     p, Rh, c32 = p.clone(), rodrigues(p[:, :3]), c.float()
     sums = []
-    for li, (level, steps) in enumerate(SCHEDULE):
+    for li, (level, steps) in enumerate(schedule):
         scale, margin = 2 ** level, 3 * 2 ** level
         for step in range(steps):
+            if step == 0 or expressions:
+                X = T + torch.einsum("nk,kmc->nmc", p[:, 6:].float(), B)
+                Xl_expr = torch.einsum("nk,klc->nlc", p[:, 6:], problem.B)
             R = R0 @ Rh
             R32 = R.float()
             Xc = X @ R32.transpose(1, 2) + p[:, None, 3:6].float()
@@ -132,19 +190,27 @@ def refine_chunk(problem: Problem, model, p: torch.Tensor, obs: torch.Tensor, im
             r = sample[..., 0] - colour
             w = (seen & known) * torch.clamp(HUBER_GREY / r.abs().clamp_min(1e-9), max=1.0)
             dG = (sample[..., 1:3, None] * dU).sum(2, keepdim=True)  # d(grey)/d(camera point) [N, M, 1, 3]
-            J = jacobian(dG, R32, X)[:, :, 0]  # [N, M, 6]
-            Jw = (J * w[..., None]).transpose(1, 2)
-            Hm = PHOTOMETRIC_WEIGHT * (Jw @ J).double()
-            g = PHOTOMETRIC_WEIGHT * (Jw @ r[..., None]).double()
+            sw = w.sqrt()  # the weights on both sides: sqrt(w) J, as fit.normal_equations has them
+            J = pixel_jacobian(dG, R32, X, Bf if expressions else None).mul_(sw[..., None])
+            weight = EXPRESSION_PIXEL_WEIGHT if expressions else PHOTOMETRIC_WEIGHT
+            Hm = weight * (J.transpose(1, 2) @ J).double()
+            g = weight * (J.transpose(1, 2) @ (r * sw)[..., None]).double()
             Xl = problem.anchors(p[:, :3]) + Xl_expr
             ul, dUl = projection(Xl @ R.transpose(1, 2) + p[:, None, 3:6], f, c)
             rl = ul - obs
-            Hl, gl = normal_equations(dUl, R, Xl, None, torch.clamp(1.5 / rl.norm(dim=-1).clamp_min(1e-9), max=1.0), rl)
-            Hm = Hm + Hl + 1e-3 * torch.eye(6, dtype=torch.float64)
-            delta = torch.linalg.solve(Hm, -(g + gl))[..., 0]
+            Hl, gl = normal_equations(dUl, R, Xl, Btf if expressions else None,
+                                      torch.clamp(1.5 / rl.norm(dim=-1).clamp_min(1e-9), max=1.0), rl)
+            Hm = Hm + Hl + 1e-3 * torch.eye(active, dtype=torch.float64)
+            g = g + gl
+            if expressions:  # the landmark fit's prior on the expressions
+                Hm[:, 6:, 6:] += EXPRESSION_WEIGHT * torch.eye(len(free), dtype=torch.float64)
+                g[:, 6:, 0] += EXPRESSION_WEIGHT * p[:, 6 + free]
+            delta = torch.linalg.solve(Hm, -g)[..., 0]
             Rh = Rh @ rodrigues(delta[:, :3])
             p[:, 3:6] += delta[:, 3:6]
             p[:, :3] = matrix_to_axis_angle(Rh)
+            if expressions:
+                p[:, 6 + free] = (p[:, 6 + free] + delta[:, 6:]).clamp(0.0, 1.0)
     return p, torch.stack(sums)
 
 
@@ -154,14 +220,15 @@ def _normals(model) -> torch.Tensor:
     return vertex_normals(model.template.double()[None], model.faces)[0]
 
 
-def refine_poses(model, fit: FitResult, landmarks: np.ndarray, iris: np.ndarray,
+def refine_on_pixels(model, fit: FitResult, landmarks: np.ndarray, iris: np.ndarray,
                  chunks: Callable[[], Iterable[tuple[np.ndarray, np.ndarray]]], threads: int | None = None,
-                 passes: int = PASSES) -> FitResult:
+                 passes: int = PASSES, expression_passes: int = EXPRESSION_PASSES) -> FitResult:
     """The landmark fit ``fit`` of N frames (their ``landmarks [N, 468, 3]`` and ``iris [N, 2, 5, 3]``, as
-    :func:`.fit.fit_frames` took them) with each frame's head pose refined on its pixels: ``chunks()`` yields
-    (frame indices into the N, grey frames ``[n, H, W]`` float32 of the fitted size, :func:`grey`), once per pass.
-    A point's colour is its mean over the frames of its chunk and of the chunks before it on the first pass, and
-    over the whole video on the later ones (the other chunks' sums from the pass before)."""
+    :func:`.fit.fit_frames` took them) with each frame's head pose refined on its pixels in ``passes`` passes,
+    then its pose and expressions together in ``expression_passes`` more: ``chunks()`` yields (frame indices into
+    the N, grey frames ``[n, H, W]`` float32 of the fitted size, :func:`grey`), once per pass. A point's colour is
+    its mean over the frames of its chunk and of the chunks before it on the first pass of a kind, and over the
+    whole video on the later ones (the other chunks' sums from the pass before)."""
     from ..data.generate import torch_threads
 
     with torch_threads(threads):
@@ -172,16 +239,21 @@ def refine_poses(model, fit: FitResult, landmarks: np.ndarray, iris: np.ndarray,
         p = torch.cat([matrix_to_axis_angle(R0.T @ R), torch.from_numpy(fit.t).double(),
                        torch.from_numpy(fit.expression).double()], 1)
         points = rigid_points(model)
+        both = torch.cat([points[:EXPRESSION_RIGID], rigid_points(model, EXPRESSION_POINTS, moving=True)])
         before: list[torch.Tensor] = []  # each chunk's colour sums [levels, 2, M] in the pass before
-        for _ in range(passes):
+        for pass_ in range(passes + expression_passes):
+            expressions = pass_ >= passes
+            if pass_ == passes:
+                before = []  # other points: their colours start afresh
             total, running, sums_now = sum(before) if before else None, None, []
             for i, (idx, images) in enumerate(chunks()):
                 k = torch.from_numpy(np.asarray(idx, np.int64))
                 others = running if total is None else total - before[i]
-                p[k], sums = refine_chunk(problem, model, p[k], obs[k], images, f, c, points, others)
+                p[k], sums = refine_chunk(problem, model, p[k], obs[k], images, f, c, both if expressions else points,
+                                          others, expressions=expressions)
                 sums_now.append(sums)
                 running = sums if running is None else running + sums
             before = sums_now
         err = (problem.project(p, f, c) - obs).norm(dim=-1)
-    return FitResult(fit.K, (R0 @ rodrigues(p[:, :3])).numpy(), p[:, 3:6].numpy(), fit.expression,
+    return FitResult(fit.K, (R0 @ rodrigues(p[:, :3])).numpy(), p[:, 3:6].numpy(), p[:, 6:].numpy(),
                      err.median(1).values.numpy(), fit.focal_search)

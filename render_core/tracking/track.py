@@ -33,6 +33,7 @@ from .landmarks import track_landmarks
 from .video import VideoLimits, VideoReader
 
 CROPS = ("auto", "none")
+PHOTOMETRIC = ("on", "poses", "off")  # what the refinement on the pixels refines: poses and expressions, poses, nothing
 SHEET_FRAMES = 6
 MIN_FRAMES = 10  # fewer frames with a face: "too short" to train an avatar on
 
@@ -67,7 +68,7 @@ def _sheet(tiles: list[np.ndarray], path: Path) -> Path:
 def track_video(video: str | os.PathLike, out: str | os.PathLike, *, fps: float | None = None, size: int = 512,
                 crop: str = "auto", max_seconds: float | None = None, threads: int | None = None,
                 progress: Callable[[str], None] | None = None, limits: VideoLimits | None = None,
-                min_frames: int = MIN_FRAMES, focal: float | None = None, photometric: bool = True) -> dict:
+                min_frames: int = MIN_FRAMES, focal: float | None = None, photometric: str = "on") -> dict:
     """Track ``video`` into the dataset folder ``out`` (module docstring); returns the report: frames_kept,
     frames_dropped (count and runs with reasons), reprojection_px (median over the kept frames), focal, faces (the
     most seen at once, frames with several: the largest was tracked), timing_ms.
@@ -76,7 +77,8 @@ def track_video(video: str | os.PathLike, out: str | os.PathLike, *, fps: float 
     ``write``; no paths in them) and may raise to stop the tracking (a cancelled job). ``limits``: the video's
     (default :class:`~.video.VideoLimits`). ``focal``: the focal length in pixels of the output frames when it is
     known (a phone records it), instead of searching it from the landmarks (:func:`~.fit.search_focal`).
-    ``photometric``: refine the head poses on the frames' pixels after the landmark fit (:mod:`.photometric`).
+    ``photometric``: after the landmark fit, refine the head poses and then the expressions on the frames' pixels
+    (``"on"``, :mod:`.photometric`), the poses only (``"poses"``) or neither (``"off"``).
     ``threads``: CPU threads (default None: torch's, the machine's cores, as the CLI and the job workers run; 1:
     one core: the irises and the mattes made in turn on the calling thread). Fewer than ``min_frames`` frames with
     a face is a ``TrackingError`` on ``frames`` (too short)."""
@@ -84,11 +86,13 @@ def track_video(video: str | os.PathLike, out: str | os.PathLike, *, fps: float 
     from ..data.portable import Tracking, write_dataset
     from ..facemodel.open_head import open_head
     from .fit import fit_frames
-    from .photometric import refine_poses
+    from .photometric import EXPRESSION_PASSES, refine_on_pixels
     from .segment import head_matte, mesh_silhouette, person_probability
 
     if crop not in CROPS:
         raise TrackingError(f"unknown crop {crop!r}; one of {', '.join(CROPS)}", field="crop")
+    if photometric not in PHOTOMETRIC:
+        raise TrackingError(f"unknown refinement {photometric!r}; one of {', '.join(PHOTOMETRIC)}", field="photometric")
     if focal is not None and not (0 < focal < 100 * size):  # refused before anything is decoded
         raise TrackingError(f"must be a positive number of pixels below {100 * size}, got {focal}", field="focal")
     say = progress or (lambda s: None)
@@ -131,11 +135,12 @@ def track_video(video: str | os.PathLike, out: str | os.PathLike, *, fps: float 
                      threads=threads)
     n = len(kept)
     where = {int(f): k for k, f in enumerate(kept)}
-    if photometric:
-        say(f"fit: refining {n} poses on the pixels")
+    if photometric != "off":
+        say(f"fit: refining {n} frames on the pixels")
         decode_before = timing["decode"]
-        fit = refine_poses(model, fit, landmarks[kept], iris[kept],
-                           lambda: _grey_chunks(reader, max_seconds, where, window, timing), threads=threads)
+        fit = refine_on_pixels(model, fit, landmarks[kept], iris[kept],
+                               lambda: _grey_chunks(reader, max_seconds, where, window, timing), threads=threads,
+                               expression_passes=EXPRESSION_PASSES if photometric == "on" else 0)
         t0 += timing["decode"] - decode_before  # the second decode counts as decoding
     timing["fit"] = time.perf_counter() - t0
 
