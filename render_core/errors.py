@@ -51,5 +51,6 @@ class OptionError(BlendsplatError, ValueError):
 
 class TrackingError(BlendsplatError):
     """Tracking a video failed on its input: not a video (``video``), a stream corrupt halfway (``video``), over a
-    limit (``duration``, ``resolution``, ``frames``), a bad option (``fps``, ``crop``, ``size``, ``detector``), no
-    face found (``face``), or the shipped tracking models missing or altered (``model``). ``field`` names which."""
+    limit (``duration``, ``resolution``, ``frames``), a bad option (``fps``, ``crop``, ``size``, ``detector``,
+    ``photometric``), no face found (``face``), or the shipped tracking models missing or altered (``model``).
+    ``field`` names which."""

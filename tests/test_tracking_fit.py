@@ -274,6 +274,18 @@ def test_bench_track_reports_the_stage_split_and_the_known_answer():
     assert 0 <= report["median_vertex_px"] < 10 and 0 <= report["median_head_rotation_deg"] < 15
 
 
+def test_an_unknown_refinement_is_refused_by_name_before_anything_is_written(tmp_path):
+    """track_video's ``photometric`` is one of on, poses, off; another value is a TrackingError naming the field,
+    raised before the video is read, and the output folder is not made."""
+    from render_core.errors import TrackingError
+    from render_core.tracking.track import track_video
+
+    with pytest.raises(TrackingError, match="unknown refinement 'yes'; one of on, poses, off") as raised:
+        track_video(tmp_path / "missing.mp4", tmp_path / "out", photometric="yes")
+    assert raised.value.field == "photometric"
+    assert not (tmp_path / "out").exists()
+
+
 def test_a_known_focal_length_is_used_instead_of_searched(tmp_path):
     """``--focal``: the focal length the user knows (a phone records it) is the tracking's, not an estimate; a
     nonsensical one is refused naming ``focal``."""

@@ -23,15 +23,21 @@ import torch
 SKIPPED_GROUPS = ("eyeball_l", "eyeball_r", "teeth_upper", "teeth_lower", "tongue")
 
 
+def _coefficients(model, tracking, dtype: torch.dtype) -> torch.Tensor:
+    """A tracking's expression coefficients in the model's order ``[N, K]`` (matched by name, a missing one 0)."""
+    e = torch.zeros(len(tracking.expression), model.num_expressions, dtype=dtype)
+    for k, name in enumerate(model.expression_names):
+        if name in tracking.expression_names:
+            e[:, k] = torch.from_numpy(np.asarray(tracking.expression[:, tracking.expression_names.index(name)]))
+    return e
+
+
 def _posed(model, tracking) -> tuple[torch.Tensor, torch.Tensor]:
     """(Projected vertices ``[N, V, 2]``, the head's camera-space rotation ``[N, 3, 3]``) of a tracking."""
     from ..rotation import axis_angle_to_matrix
 
     n = len(tracking.expression)
-    e = torch.zeros(n, model.num_expressions, dtype=torch.float32)
-    for k, name in enumerate(model.expression_names):
-        if name in tracking.expression_names:
-            e[:, k] = torch.from_numpy(np.asarray(tracking.expression[:, tracking.expression_names.index(name)]))
+    e = _coefficients(model, tracking, torch.float32)
     aa = torch.zeros(n, model.num_joints, 3)
     for j, name in enumerate(model.joint_names):
         if name in tracking.joint_names:
@@ -70,15 +76,7 @@ def jaw_degrees(model, tracking) -> np.ndarray:
 def expression_mm(model, truth, tracked) -> np.ndarray:
     """Per frame, the mean distance (mm) over the open head's vertices between the two trackings' expressions
     (coefficients matched by name, a missing one 0), each applied to the template through the expression basis."""
-    def coefficients(tracking) -> torch.Tensor:
-        e = torch.zeros(len(tracking.expression), model.num_expressions, dtype=torch.float64)
-        for k, name in enumerate(model.expression_names):
-            if name in tracking.expression_names:
-                e[:, k] = torch.from_numpy(np.asarray(tracking.expression[:, tracking.expression_names.index(name)],
-                                                      np.float64))
-        return e
-
-    delta = coefficients(tracked) - coefficients(truth)
+    delta = _coefficients(model, tracked, torch.float64) - _coefficients(model, truth, torch.float64)
     moved = torch.einsum("nk,kvc->nvc", delta, model.expression_basis.double())
     return (moved.norm(dim=-1).mean(1) * 1000).numpy()
 
