@@ -140,7 +140,8 @@ def track_video(video: str | os.PathLike, out: str | os.PathLike, *, fps: float 
         decode_before = timing["decode"]
         fit = refine_on_pixels(model, fit, landmarks[kept], iris[kept],
                                lambda: _grey_chunks(reader, max_seconds, where, window, timing), threads=threads,
-                               expression_passes=EXPRESSION_PASSES if photometric == "on" else 0)
+                               expression_passes=EXPRESSION_PASSES if photometric == "on" else 0,
+                               focal=focal is None)
         t0 += timing["decode"] - decode_before  # the second decode counts as decoding
     timing["fit"] = time.perf_counter() - t0
 
