@@ -146,3 +146,34 @@ def test_training_refines_expressions_and_the_final_psnr_renders_them(toy, head,
     final = t.final_psnr()["psnr"]
     poses.wu[:, 6:] += 0.5  # a large correction everywhere: the final figure must render it
     assert t.final_psnr()["psnr"] != final
+
+
+def test_the_corrections_learning_rate_decays_from_their_start_to_the_final_fraction():
+    """refine_lr: 1 until refine_poses_from, then an exponential decay to refine_lr_final at the last iteration
+    (1.0: constant); FramePoses.step(scale) takes that fraction of the learning rates."""
+    from render_core.train.trainer import refine_lr
+
+    cfg = TOY.with_(refine_poses_from=100, refine_lr_final=0.04)
+    assert refine_lr(cfg, 50, 1100) == 1.0 and refine_lr(cfg, 100, 1100) == 1.0
+    assert refine_lr(cfg, 1100, 1100) == pytest.approx(0.04)
+    assert refine_lr(cfg, 600, 1100) == pytest.approx(0.2)  # halfway: the geometric mean
+    assert refine_lr(cfg.with_(refine_lr_final=1.0), 900, 1100) == 1.0
+    poses = FramePoses(2)
+    w, u = poses.motion(1)
+    (w.sum() + u.sum()).backward()
+    poses.step(0.25)
+    torch.testing.assert_close(poses.wu[1].abs(), 0.25 * poses.lr)
+
+
+def test_training_with_the_decay_ends_with_smaller_corrections_on_a_true_tracking(toy, head, tmp_path):
+    """On the toy's TRUE tracking, whatever the corrections learn is noise: with the decay (the default) they end
+    closer to zero than at a constant rate (refine_lr_final 1.0), the same frames drawn in the same order."""
+    runs = {}
+    for final in (1.0, TOY.refine_lr_final):
+        t = Trainer(toy, tmp_path / str(final), TOY.with_(refine_poses=True, refine_poses_from=0,
+                                                          refine_lr_final=final), iterations=30, seed=3,
+                    facemodel=head)
+        t.run()
+        runs[final] = t._poses.wu[:, :3].norm(dim=1)
+    assert TOY.refine_lr_final < 1.0
+    assert float(runs[TOY.refine_lr_final].mean()) < 0.8 * float(runs[1.0].mean()), runs

@@ -83,8 +83,9 @@ class FramePoses:
         return POSE_PRIOR * scaled.square().sum() + EXPRESSION_PRIOR * wu[:, 6:].square().sum()
 
     @torch.no_grad()
-    def step(self) -> None:
-        """One Adam step of the frame last given by :meth:`motion`, from its gradient."""
+    def step(self, scale: float = 1.0) -> None:
+        """One Adam step of the frame last given by :meth:`motion`, from its gradient, at ``scale`` x the learning
+        rates."""
         j, wu = self._leaf
         if wu.grad is None:
             return
@@ -95,7 +96,7 @@ class FramePoses:
         self.v[j] = BETAS[1] * self.v[j] + (1 - BETAS[1]) * g * g
         m_hat = self.m[j] / (1 - BETAS[0] ** t)
         v_hat = self.v[j] / (1 - BETAS[1] ** t)
-        self.wu[j] -= self.lr * m_hat / (v_hat.sqrt() + EPS)
+        self.wu[j] -= (scale * self.lr) * m_hat / (v_hat.sqrt() + EPS)
 
     def state(self) -> dict:
         return {"wu": self.wu.clone(), "m": self.m.clone(), "v": self.v.clone(), "steps": self.steps.clone()}

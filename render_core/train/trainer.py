@@ -133,6 +133,13 @@ def xyz_lr(preset: Preset, step: int) -> float:
     return math.exp(math.log(preset.lr_xyz) * (1 - t) + math.log(preset.lr_xyz_final) * t)
 
 
+def refine_lr(preset: Preset, iteration: int, total: int) -> float:
+    """The per-frame corrections' learning rate at an iteration, as a fraction of their first: an exponential
+    decay from ``refine_poses_from`` to ``refine_lr_final`` at the last iteration."""
+    t = min(max((iteration - preset.refine_poses_from) / max(total - preset.refine_poses_from, 1), 0.0), 1.0)
+    return preset.refine_lr_final ** t
+
+
 def active_sh_degree(preset: Preset, iteration: int) -> int:
     """SH degree at a (1-based) iteration: one band more every ``sh_every`` iterations."""
     return min(preset.sh_degree, iteration // max(preset.sh_every, 1))
@@ -553,7 +560,7 @@ class Trainer:
         t3 = clock()
         opt.step()
         if poses is not None:
-            poses.step()
+            poses.step(refine_lr(cfg, it, self.total))
         t4 = clock()
         times["loss"] += t2 - t1
         times["backward"] += t3 - t2
