@@ -410,7 +410,6 @@ def _exact_landmarks(model, n: int, f: float, size: int, expressions: dict[str, 
     p = torch.zeros(n, P, dtype=torch.float64)
     p[:, 1] = torch.linspace(-0.35, 0.35, n)  # yaw
     p[:, 0] = torch.linspace(0.15, -0.1, n)  # pitch
-    p[:, 5] = 0.55
     for name, value in expressions.items():
         p[:, 6 + model.expression_names.index(name)] = value
     p[:, 3:6] = -(R0 @ problem.T.mean(0))  # the template's centre on the optical axis, 0.55 m away

@@ -162,14 +162,15 @@ def pixel_jacobian(dG: torch.Tensor, R: torch.Tensor, X: torch.Tensor, B: torch.
 
 def refine_chunk(problem: Problem, model, p: torch.Tensor, obs: torch.Tensor, images: np.ndarray, f: float,
                  c: torch.Tensor, points: torch.Tensor, others: torch.Tensor | None = None, expressions: bool = False,
-                 focal: bool = False) -> tuple[torch.Tensor, torch.Tensor, float]:
+                 focal: bool = False) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
     """One chunk: ``p [N, 58]`` (rotation, translation, expressions, as :func:`.fit.solve` has them), its landmark
     observations ``obs [N, L, 2]`` and grey frames ``images [N, H, W]`` -> (``p`` refined, the
     chunk's colour sums ``[levels, 2, M]``: per pyramid level, each point's summed grey level and its views, with the
     poses at the level's start). ``others``: such sums of other frames, added to the chunk's own for the colours.
     The pixel terms are computed in float32 (2x faster than float64; the poses agree to 1e-5), the steps in
     float64. ``expressions``: the 52 expressions are refined too (the points then include ones they move; their
-    Jacobian through the basis, the landmark fit's prior and [0, 1] bounds), else they are held."""
+    Jacobian through the basis, the landmark fit's prior and [0, 1] bounds), else they are held. ``focal``: the
+    third value is the chunk's :func:`marginal` terms of log f at its last step (else None); ``f`` itself stays."""
     n, H, W = images.shape
     shared = None
     schedule = EXPRESSION_SCHEDULE if expressions else SCHEDULE
@@ -210,8 +211,8 @@ def refine_chunk(problem: Problem, model, p: torch.Tensor, obs: torch.Tensor, im
             Xl = problem.anchors(p[:, :3]) + Xl_expr
             ul, dUl = projection(Xl @ R.transpose(1, 2) + p[:, None, 3:6], f, c)
             rl = ul - obs
-            Hl, gl = normal_equations(dUl, R, Xl, Btf if expressions else None,
-                                      torch.clamp(1.5 / rl.norm(dim=-1).clamp_min(1e-9), max=1.0), rl)
+            wl = torch.clamp(1.5 / rl.norm(dim=-1).clamp_min(1e-9), max=1.0)  # the landmarks' Huber weights [N, L]
+            Hl, gl = normal_equations(dUl, R, Xl, Btf if expressions else None, wl, rl)
             Hm = Hm + Hl + 1e-3 * torch.eye(active, dtype=torch.float64)
             g = g + gl
             if expressions:  # the landmark fit's prior on the expressions
@@ -220,8 +221,7 @@ def refine_chunk(problem: Problem, model, p: torch.Tensor, obs: torch.Tensor, im
             delta = torch.linalg.solve(Hm, -g)[..., 0]
             if focal and li == len(schedule) - 1 and step == steps - 1:  # the focal length's marginal terms
                 jf = (sample[..., 1:3] * (u - c32)).sum(-1) * sw  # d(grey)/d(log f), weighted [N, M]
-                wl = torch.clamp(1.5 / rl.norm(dim=-1).clamp_min(1e-9), max=1.0)[..., None]  # [N, L, 1]
-                dl = (ul - c) * wl  # d(landmark)/d(log f), weighted once
+                dl = (ul - c) * wl[..., None]  # d(landmark)/d(log f), weighted once
                 Hf = weight * (J.transpose(1, 2) @ jf[..., None]).double()[..., 0] \
                     + torch.einsum("nlca,nlc->na", jacobian(dUl, R, Xl), dl)
                 hff = weight * (jf * jf).sum(1).double() + ((ul - c) * dl).sum((1, 2))
