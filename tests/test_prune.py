@@ -20,7 +20,15 @@ from render_core.train import TrainableAvatar, Trainer, get_preset, train
 from render_core.train.densify import DensifyStrategy
 from render_core.train.initialize import init_avatar
 from render_core.train.presets import PRESETS
-from render_core.train.prune import ContributionPruner, blend_weights, contribution, prune_lowest, step_fraction
+from render_core.train.prune import (
+    FIXED_PIXELS,
+    ContributionPruner,
+    blend_weights,
+    contribution,
+    footprints,
+    prune_lowest,
+    step_fraction,
+)
 from render_core.train.trainer import make_optimizer, raster_step
 
 # A toy schedule: no densification (the counts are the pruning's alone), the SH ramp and xyz decay over the run.
@@ -131,6 +139,49 @@ def test_contribution_is_the_face_gaussians_weights_summed_over_frames(head, dat
     assert float((got_moved - got).abs().sum()) > 0.1 * float(got.sum())  # the motion matters
 
 
+def test_footprints_are_the_pixels_a_splat_reaches_alpha_1_over_255():
+    cams = camera(width=200, height=200, f=100.0)
+    # Isotropic splats 2 m away: sigma 0.02 m -> 1 px, 0.1 m -> 5 px (0.3 px^2 of blur on the diagonal).
+    means = torch.tensor([[[0.0, 0.0, 2.0], [0.1, 0.0, 2.0], [0.0, 0.1, 2.0], [0.0, 0.0, -1.0]]])
+    scales = torch.tensor([0.02, 0.1, 0.1, 0.1])[None, :, None].expand(1, 4, 3)
+    opac = torch.tensor([[0.9, 0.9, 0.02, 0.9]])
+    quats = torch.tensor([1.0, 0.0, 0.0, 0.0]).expand(1, 4, 4)
+    got = footprints(ShadedSplats(means, quats, scales, opac, torch.zeros(1, 4, 3)), cams)[0]
+    for i, (sigma_px, o) in enumerate([(1.0, 0.9), (5.0, 0.9), (5.0, 0.02)]):
+        extent2 = min(2 * math.log(255 * o), 3.33 ** 2)
+        var = sigma_px ** 2 + 0.3
+        assert float(got[i]) == pytest.approx(math.pi * extent2 * var, rel=5e-3)  # off axis: skewed a little
+        # Every pixel whose alpha reaches 1/255 lies in it: count them on the pixel grid.
+        d2 = ((torch.arange(200.0) + 0.5 - 100 - [0, 50, 0][i]) ** 2)[None] + \
+             ((torch.arange(200.0) + 0.5 - 100 - [0, 0, 50][i]) ** 2)[:, None]
+        inside = (o * torch.exp(-0.5 * d2 / var) >= 1 / 255) & (d2 <= 3.33 ** 2 * var)
+        assert int(inside.sum()) == pytest.approx(float(got[i]), rel=0.15, abs=3)
+    assert float(got[3]) == 0  # behind the camera: culled, costs nothing
+
+
+def test_efficiency_scores_the_weight_per_pixel_paid_for(head, data):
+    from render_core.data import read_dataset
+
+    av = init_avatar(head, gaussians=300, mouth=30, seed=4, opacity=0.5)
+    model = TrainableAvatar.from_facemodel(av, head)
+    tracking = read_dataset(data).tracking
+    frames, cams = frame_inputs(av, tracking, list(tracking.train)[:3])
+    weight = contribution(model, frames, cams, raster_step("cpu"))
+    got = contribution(model, frames, cams, raster_step("cpu"), by="efficiency")
+    cost = torch.full((300,), 3 * FIXED_PIXELS, dtype=torch.float64)
+    with torch.no_grad():
+        avatar = model.avatar(0, detach=True, deltas=False)
+    for j in range(3):
+        frame = Frame(frames.expression[j:j + 1], frames.joint_rotations[j:j + 1],
+                      None if frames.eyelids is None else frames.eyelids[j:j + 1])
+        cost += footprints(deform(model.to_avatar(), frame), cams.index(j), avatar.raster_mode)[0, :300].double()
+    torch.testing.assert_close(got, weight / cost, rtol=1e-3, atol=1e-6)
+    # Not the same order as the weight alone: big faint Gaussians rank lower, small bright ones higher.
+    assert not torch.equal(torch.argsort(got)[:100].sort().values, torch.argsort(weight)[:100].sort().values)
+    with pytest.raises(ValueError, match="prune_by"):
+        contribution(model, frames, cams, raster_step("cpu"), by="size")
+
+
 def test_prune_lowest_keeps_the_survivors_state(head):
     av = init_avatar(head, gaussians=200, mouth=20, seed=4)
     model = TrainableAvatar.from_facemodel(av, head)
@@ -190,6 +241,8 @@ def test_the_schedule_and_its_switches():
     assert parser.parse_args(["train", "d", "--out", "x.bsplat", "--prune", "off"]).prune == 0.0
     assert parser.parse_args(["train", "d", "--out", "x.bsplat", "--prune", "on"]).prune == 0.4
     assert parser.parse_args(["train", "d", "--out", "x.bsplat"]).prune == 0.0
+    assert parser.parse_args(["train", "d", "--out", "x.bsplat"]).prune_by == "contribution"
+    assert ContributionPruner.from_preset(tiny.with_(prune_by="efficiency")).by == "efficiency"
     with pytest.raises(SystemExit):
         parser.parse_args(["train", "d", "--out", "x.bsplat", "--prune", "1.5"])
 

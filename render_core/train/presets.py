@@ -48,6 +48,9 @@ class Preset:
     prune_at: tuple[int, ...] = ()
     prune_fraction: float = 0.0
     prune_frames: int = 24
+    # the score: "contribution" (the summed weight) or "efficiency" (that weight per pixel the Gaussian costs to
+    # render: :func:`.prune.footprints`; ``train --prune-by``)
+    prune_by: str = "contribution"
     # Per-frame head poses refined with the avatar (:mod:`.poses`), from this iteration on: for tracked videos whose
     # poses are off by about a pixel (``blendsplat track``'s output; ``train --refine-poses``).
     refine_poses: bool = False

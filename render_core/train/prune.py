@@ -29,10 +29,14 @@ from .. import raster
 from ..camera import Cameras
 from ..deform import Frame, Splats, skin
 from ..evaluation.align import moved_splats
+from ..raster.reference import ALPHA_MIN, EXTENT_MAX, project
 from .densify import DensifyStrategy, reindex
 from .model import TrainableAvatar
 from .poses import corrected
 from .presets import Preset
+
+PRUNE_BY = ("contribution", "efficiency")
+FIXED_PIXELS = 32.0  # what a Gaussian costs a frame beyond its pixels (blend, skinning, projection, binning), in pixels
 
 
 def blend_weights(splats: Splats | raster.ShadedSplats, cameras: Cameras, rasterize: raster.Differentiable,
@@ -48,14 +52,31 @@ def blend_weights(splats: Splats | raster.ShadedSplats, cameras: Cameras, raster
     return grad[..., 0]
 
 
+def footprints(splats: Splats, cameras: Cameras, mode: str = "classic") -> Tensor:
+    """[B, N]: each splat's screen area in pixels where its alpha reaches 1/255 (the ellipse of its opacity-aware
+    extent, at most 3.33 sigma, as the rasterizer bounds it), 0 where it is culled: the pixels compositing pays
+    for when nothing in front has saturated them."""
+    with torch.no_grad():
+        proj = project(splats.means.detach(), splats.quats.detach(), splats.scales.detach(),
+                       splats.opacities.detach(), cameras.to(splats.means.dtype), mode)
+        a, b, c = proj.conics.unbind(-1)
+        extent2 = torch.clamp(2.0 * torch.log(proj.opacities.clamp_min(ALPHA_MIN) / ALPHA_MIN), max=EXTENT_MAX ** 2)
+        area = torch.pi * extent2 / (a * c - b * b).clamp_min(1e-30).sqrt()
+        return torch.where(proj.visible, area, 0.0)
+
+
 def contribution(model: TrainableAvatar, frames: Frame, cameras: Cameras, rasterize: raster.Differentiable, *,
-                 motions: Tensor | None = None, threads: int = 0) -> Tensor:
+                 motions: Tensor | None = None, threads: int = 0, by: str = "contribution") -> Tensor:
     """Per face Gaussian [N] (float64, on the model's device): :func:`blend_weights` summed over the B frames
     (``frames``, ``cameras``: one camera per frame), one frame at a time. ``motions``: [B, 6 (+ K)] rigid
     corrections (w, u) of the frames' heads and their expression corrections (:mod:`.poses`, as training renders
-    them), or None."""
+    them), or None. ``by="efficiency"``: that sum divided by what the Gaussian costs to render over the frames,
+    :data:`FIXED_PIXELS` a frame plus its :func:`footprints` (the blending weight per pixel paid for)."""
+    if by not in PRUNE_BY:
+        raise ValueError(f"prune_by must be one of {PRUNE_BY}, got {by!r}")
     n = model.num_gaussians
     score = torch.zeros(n, dtype=torch.float64, device=model.means.device)
+    cost = torch.full_like(score, FIXED_PIXELS * len(frames))
     with torch.no_grad():
         avatar = model.avatar(0, detach=True, deltas=False)  # the colours do not change the weights
     for j in range(len(frames)):
@@ -69,7 +90,9 @@ def contribution(model: TrainableAvatar, frames: Frame, cameras: Cameras, raster
                 splats = moved_splats(splats, cameras.index(j), *motion)
         w = blend_weights(splats, cameras.index(j), rasterize, avatar.raster_mode, threads=threads)
         score += w[0, :n].to(score.dtype)
-    return score
+        if by == "efficiency":
+            cost += footprints(splats, cameras.index(j), avatar.raster_mode)[0, :n].to(cost.dtype)
+    return score / cost if by == "efficiency" else score
 
 
 def prune_lowest(model: TrainableAvatar, opt: torch.optim.Optimizer, score: Tensor, count: int,
@@ -104,14 +127,15 @@ class ContributionPruner:
     """The preset's contribution-pruning schedule (:meth:`from_preset`); :meth:`due` says when,
     :meth:`prune` does it. Holds no state of its own: the schedule is the preset's, the sample fixed."""
 
-    def __init__(self, at: tuple[int, ...] = (), fraction: float = 0.0, frames: int = 24):
+    def __init__(self, at: tuple[int, ...] = (), fraction: float = 0.0, frames: int = 24, by: str = "contribution"):
+        self.by = by
         self.at = tuple(sorted({int(i) for i in at})) if fraction > 0 else ()
         self.fraction, self.frames = float(fraction), max(int(frames), 1)
         self.each = step_fraction(self.fraction, len(self.at))
 
     @classmethod
     def from_preset(cls, preset: Preset) -> ContributionPruner:
-        return cls(preset.prune_at, preset.prune_fraction, preset.prune_frames)
+        return cls(preset.prune_at, preset.prune_fraction, preset.prune_frames, preset.prune_by)
 
     @property
     def enabled(self) -> bool:
@@ -135,6 +159,6 @@ class ContributionPruner:
                     None if frames.eyelids is None else frames.eyelids[pick])
         cams = Cameras(cameras.K[pick], cameras.R[pick], cameras.t[pick], cameras.width, cameras.height)
         moved = None if motions is None else motions[pick]
-        score = contribution(model, sub, cams, rasterize, motions=moved, threads=threads)
+        score = contribution(model, sub, cams, rasterize, motions=moved, threads=threads, by=self.by)
         count = int(round(self.each * model.num_gaussians))
         return {**prune_lowest(model, opt, score, count, strategy), "frames": len(pick)}
