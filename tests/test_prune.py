@@ -114,13 +114,17 @@ def data(head, tmp_path_factory):
     return out
 
 
-def test_contribution_is_the_face_gaussians_weights_summed_over_frames(head, data):
+def three_frames(head, data):
+    """A 300-Gaussian untrained avatar's model on the open head and three training frames of ``data``."""
     from render_core.data import read_dataset
 
     av = init_avatar(head, gaussians=300, mouth=30, seed=4, opacity=0.5)
-    model = TrainableAvatar.from_facemodel(av, head)
     tracking = read_dataset(data).tracking
-    frames, cams = frame_inputs(av, tracking, list(tracking.train)[:3])
+    return (TrainableAvatar.from_facemodel(av, head), *frame_inputs(av, tracking, list(tracking.train)[:3]))
+
+
+def test_contribution_is_the_face_gaussians_weights_summed_over_frames(head, data):
+    model, frames, cams = three_frames(head, data)
     got = contribution(model, frames, cams, raster_step("cpu"))
     # Frames whose heads training moves (refined poses): scored as training renders them.
     motions = torch.tensor([[0.0, 0.05, 0.0, 0.01, 0.0, 0.0]]).repeat(3, 1)
@@ -160,12 +164,7 @@ def test_footprints_are_the_pixels_a_splat_reaches_alpha_1_over_255():
 
 
 def test_efficiency_scores_the_weight_per_pixel_paid_for(head, data):
-    from render_core.data import read_dataset
-
-    av = init_avatar(head, gaussians=300, mouth=30, seed=4, opacity=0.5)
-    model = TrainableAvatar.from_facemodel(av, head)
-    tracking = read_dataset(data).tracking
-    frames, cams = frame_inputs(av, tracking, list(tracking.train)[:3])
+    model, frames, cams = three_frames(head, data)
     weight = contribution(model, frames, cams, raster_step("cpu"))
     got = contribution(model, frames, cams, raster_step("cpu"), by="efficiency")
     cost = torch.full((300,), 3 * FIXED_PIXELS, dtype=torch.float64)
