@@ -154,7 +154,11 @@ def test_the_torch_paths_blend_the_dequantised_values(small):
         device = DeviceAvatar(q, "cpu", layout=layout)
         got = device.blend(e)
         assert device.precision == "fp32"
-        assert torch.equal(got.means, want.means) and torch.equal(got.sh, want.sh)
+        if layout == "sparse":  # the same pairs summed in the same order: bit for bit
+            assert torch.equal(got.means, want.means) and torch.equal(got.sh, want.sh)
+        else:  # one dense matmul: BLAS may sum in another order (an ulp apart on an AVX-512 FP16 Xeon)
+            torch.testing.assert_close(got.means, want.means, rtol=1e-6, atol=1e-7)
+            torch.testing.assert_close(got.sh, want.sh, rtol=1e-6, atol=1e-6)
     assert torch.equal(blend(q, e).sh, want.sh)
 
 
