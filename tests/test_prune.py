@@ -242,6 +242,8 @@ def test_the_schedule_and_its_switches():
     assert parser.parse_args(["train", "d", "--out", "x.bsplat"]).prune == 0.0
     assert parser.parse_args(["train", "d", "--out", "x.bsplat"]).prune_by == "contribution"
     assert ContributionPruner.from_preset(tiny.with_(prune_by="efficiency")).by == "efficiency"
+    with pytest.raises(ValueError, match="prune_by"):  # refused when the trainer starts, not at the first pruning
+        ContributionPruner.from_preset(tiny.with_pruning(0.5).with_(prune_by="size"))
     with pytest.raises(SystemExit):
         parser.parse_args(["train", "d", "--out", "x.bsplat", "--prune", "1.5"])
 
@@ -319,9 +321,12 @@ def test_train_cli_prunes_when_asked(tmp_path, head, capsys, monkeypatch):
     synth_dataset(tmp_path / "ds", frames=5, size=32, seed=1, facemodel=head)
     out = tmp_path / "a.bundle"
     assert main(["train", str(tmp_path / "ds"), "--out", str(out), "--iterations", "4", "--gaussians", "500",
-                 "--prune", "0.5", "--prune-at", "2,3", "--quiet"]) == 0
+                 "--prune", "0.5", "--prune-at", "2,3", "--prune-by", "efficiency", "--quiet"]) == 0
     summary = json.loads(capsys.readouterr().out)
     assert summary["gaussians"] == 250 and [p["iteration"] for p in summary["pruned"]] == [2, 3]
     assert main(["train", str(tmp_path / "ds"), "--out", str(out), "--iterations", "2", "--prune-at", "1",
                  "--quiet"]) == 1  # --prune-at alone: an error
     assert "--prune-at needs --prune" in capsys.readouterr().err
+    assert main(["train", str(tmp_path / "ds"), "--out", str(out), "--iterations", "2", "--prune-by", "efficiency",
+                 "--quiet"]) == 1  # --prune-by alone: an error too
+    assert "--prune-by needs --prune" in capsys.readouterr().err

@@ -479,10 +479,11 @@ def cmd_train(args: argparse.Namespace) -> int:
         preset = preset.with_(gaussians=args.gaussians, mouth=max(2, min(preset.mouth, args.gaussians // 10)),
                               max_gaussians=max(args.gaussians, preset.max_gaussians * args.gaussians
                                                 // preset.gaussians))
-    if args.prune_at and not args.prune:
-        from ..errors import OptionError
+    for flag, given in (("--prune-at", args.prune_at), ("--prune-by", args.prune_by != "contribution")):
+        if given and not args.prune:
+            from ..errors import OptionError
 
-        raise OptionError("--prune-at needs --prune FRACTION", field="prune_at")
+            raise OptionError(f"{flag} needs --prune FRACTION", field=flag[2:].replace("-", "_"))
     if args.refine_poses or args.refine_expressions:
         preset = preset.with_(refine_poses=True, refine_expressions=args.refine_expressions)
     if args.prune:

@@ -17,6 +17,10 @@ densification statistics follow them); training then continues and fine-tunes th
 the fraction of face Gaussians removed over the whole schedule: each of the m pruning iterations removes
 1 - (1 - f)^(1/m) of those present. The mouth interior is never pruned. Off when ``prune_at`` is empty or
 ``prune_fraction`` is 0.
+
+``prune_by`` (``train --prune-by``) chooses the score: the contribution itself, or ``"efficiency"``: the
+contribution per pixel the Gaussian costs to render (:func:`footprints`, its alpha >= 1/255 ellipse, plus
+:data:`FIXED_PIXELS` a frame), so that big faint Gaussians go before small bright ones.
 """
 
 from __future__ import annotations
@@ -52,6 +56,12 @@ def blend_weights(splats: Splats | raster.ShadedSplats, cameras: Cameras, raster
     return grad[..., 0]
 
 
+def check_prune_by(by: str) -> None:
+    """Refuse a score that is not one of :data:`PRUNE_BY`, by name."""
+    if by not in PRUNE_BY:
+        raise ValueError(f"prune_by must be one of {PRUNE_BY}, got {by!r}")
+
+
 def footprints(splats: Splats, cameras: Cameras, mode: str = "classic") -> Tensor:
     """[B, N]: each splat's screen area in pixels where its alpha reaches 1/255 (the ellipse of its opacity-aware
     extent, at most 3.33 sigma, as the rasterizer bounds it), 0 where it is culled: the pixels compositing pays
@@ -72,8 +82,7 @@ def contribution(model: TrainableAvatar, frames: Frame, cameras: Cameras, raster
     corrections (w, u) of the frames' heads and their expression corrections (:mod:`.poses`, as training renders
     them), or None. ``by="efficiency"``: that sum divided by what the Gaussian costs to render over the frames,
     :data:`FIXED_PIXELS` a frame plus its :func:`footprints` (the blending weight per pixel paid for)."""
-    if by not in PRUNE_BY:
-        raise ValueError(f"prune_by must be one of {PRUNE_BY}, got {by!r}")
+    check_prune_by(by)
     n = model.num_gaussians
     score = torch.zeros(n, dtype=torch.float64, device=model.means.device)
     cost = torch.full_like(score, FIXED_PIXELS * len(frames))
@@ -128,6 +137,7 @@ class ContributionPruner:
     :meth:`prune` does it. Holds no state of its own: the schedule is the preset's, the sample fixed."""
 
     def __init__(self, at: tuple[int, ...] = (), fraction: float = 0.0, frames: int = 24, by: str = "contribution"):
+        check_prune_by(by)  # at the trainer's start, not at the first pruning
         self.by = by
         self.at = tuple(sorted({int(i) for i in at})) if fraction > 0 else ()
         self.fraction, self.frames = float(fraction), max(int(frames), 1)
