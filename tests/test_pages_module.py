@@ -106,11 +106,13 @@ def test_the_demo_page_shows_the_frames_the_modules_websocket_stream_brings(live
     box = driver.find_element(By.ID, "idle")
     if box.is_selected():
         box.click()  # frames from the slider only
-    driver.execute_script("const el = document.getElementById('camera-yaw'); el.value = el.max;"
-                          "el.dispatchEvent(new Event('input', {bubbles: true}));")
-    # a new frame may be mid-decode (its blob set, the image not complete yet): wait for one that is whole
+    # the last frame before the slider moves (taken before the input: the turned frame can arrive and decode
+    # faster than chromedriver's next call; a new frame may be mid-decode, its blob set and the image not complete
+    # yet, so wait for one that is whole)
     before = _wait(driver, "a decoded frame", lambda d: d.execute_script(IMAGE_STATS, "view"))
     assert before["index"] >= first["index"]
+    driver.execute_script("const el = document.getElementById('camera-yaw'); el.value = el.max;"
+                          "el.dispatchEvent(new Event('input', {bubbles: true}));")
     turned = _wait(driver, "the head turned by the camera slider", lambda d: (
         (s := d.execute_script(IMAGE_STATS, "view")) and s["index"] > before["index"]
         and _difference(s, first) > 4 and s))
