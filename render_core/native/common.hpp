@@ -74,12 +74,14 @@ struct TileSplat {
 static_assert(sizeof(TileSplat) == 48, "TileSplat is 48 bytes");
 
 // The projection's output: the compositing record and the pixels whose centres can pass eligibility
-// (half-open; empty when culled), which decide the tiles it is binned into (one cache line).
-struct Splat {
+// (half-open; empty when culled), which decide the tiles it is binned into. One cache line, aligned to one: the
+// binning reads the splats in depth order, at random, and a record that straddles two lines costs two misses
+// (with 16-byte aligned vectors every record straddled, its x0..y1 on the second, unprefetched line).
+struct alignas(64) Splat {
     TileSplat t;
     float x0, x1, y0, y1;
 };
-static_assert(sizeof(Splat) == 64, "Splat is one cache line");
+static_assert(sizeof(Splat) == 64 && alignof(Splat) == 64, "Splat is one cache line");
 
 // Posed Gaussians (world space) for the raster-only entry point, array-of-structs per batch.
 struct PosedView {

@@ -120,7 +120,7 @@ void bin_frame(const Splat* s, int n, int tiles_x, int tiles, FrameBins& fb, int
         const int i0 = int(int64_t(m) * t / nt), i1 = int(int64_t(m) * (t + 1) / nt);
         uint32_t* cnt = fb.counts.data() + size_t(t) * tiles;
         const uint32_t* order = fb.order.data();
-        constexpr int kAhead = 16;  // depth order visits the splats at random: prefetch
+        constexpr int kAhead = 64;  // depth order visits the splats at random: prefetch (16 was too few)
         for (int i = i0; i < i1; ++i) {
             if (i + kAhead < i1) __builtin_prefetch(&s[order[i + kAhead]]);
             const Splat& g = s[order[i]];
