@@ -583,7 +583,14 @@ static void composite_tile(const TileSplat* sorted, const uint32_t* pos, int cou
         const TileSplat* splats = sorted + c0;
         if (pos != nullptr) {
             TileSplat* g = gathered_tls.data();
-            for (int j = 0; j < real; ++j) g[j] = sorted[pos[c0 + j]];
+            constexpr int kAhead = 16;  // the records lie far apart in depth order: prefetch both of a record's lines
+            for (int j = 0; j < real; ++j) {
+                if (j + kAhead < real) {
+                    const char* ahead = reinterpret_cast<const char*>(sorted + pos[c0 + j + kAhead]);
+                    __builtin_prefetch(ahead), __builtin_prefetch(ahead + sizeof(TileSplat) - 1);
+                }
+                g[j] = sorted[pos[c0 + j]];
+            }
             splats = g;
         }
         bool need[kTile] = {};
