@@ -240,7 +240,8 @@ def test_the_schedule_and_its_switches():
     assert parser.parse_args(["train", "d", "--out", "x.bsplat", "--prune", "off"]).prune == 0.0
     assert parser.parse_args(["train", "d", "--out", "x.bsplat", "--prune", "on"]).prune == 0.4
     assert parser.parse_args(["train", "d", "--out", "x.bsplat"]).prune == 0.0
-    assert parser.parse_args(["train", "d", "--out", "x.bsplat"]).prune_by == "contribution"
+    assert parser.parse_args(["train", "d", "--out", "x.bsplat"]).prune_by is None  # given or not: told apart
+    assert tiny.prune_by == "contribution"  # what --prune uses without --prune-by
     assert ContributionPruner.from_preset(tiny.with_(prune_by="efficiency")).by == "efficiency"
     with pytest.raises(ValueError, match="prune_by"):  # refused when the trainer starts, not at the first pruning
         ContributionPruner.from_preset(tiny.with_pruning(0.5).with_(prune_by="size"))
@@ -329,4 +330,7 @@ def test_train_cli_prunes_when_asked(tmp_path, head, capsys, monkeypatch):
     assert "--prune-at needs --prune" in capsys.readouterr().err
     assert main(["train", str(tmp_path / "ds"), "--out", str(out), "--iterations", "2", "--prune-by", "efficiency",
                  "--quiet"]) == 1  # --prune-by alone: an error too
+    assert "--prune-by needs --prune" in capsys.readouterr().err
+    assert main(["train", str(tmp_path / "ds"), "--out", str(out), "--iterations", "2", "--prune-by",
+                 "contribution", "--quiet"]) == 1  # the default score named alone: refused as well
     assert "--prune-by needs --prune" in capsys.readouterr().err

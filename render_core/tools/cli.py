@@ -479,7 +479,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         preset = preset.with_(gaussians=args.gaussians, mouth=max(2, min(preset.mouth, args.gaussians // 10)),
                               max_gaussians=max(args.gaussians, preset.max_gaussians * args.gaussians
                                                 // preset.gaussians))
-    for flag, given in (("--prune-at", args.prune_at), ("--prune-by", args.prune_by != "contribution")):
+    for flag, given in (("--prune-at", args.prune_at), ("--prune-by", args.prune_by is not None)):
         if given and not args.prune:
             from ..errors import OptionError
 
@@ -489,7 +489,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     if args.prune:
         if args.iterations:  # the default pruning iterations follow the run's length
             preset = preset.with_(iterations=args.iterations)
-        preset = preset.with_pruning(args.prune, args.prune_at).with_(prune_by=args.prune_by)
+        preset = preset.with_pruning(args.prune, args.prune_at).with_(prune_by=args.prune_by or preset.prune_by)
     with _Bar("train", "it") as bar:
         def progress(event) -> None:  # iteration, loss and PSNR; tqdm gives the ETA
             bar(event.iteration, event.total, loss=f"{event.losses['loss']:.4f}", psnr=f"{event.psnr:.2f}")
@@ -826,9 +826,9 @@ def _add_train_command(sub: argparse._SubParsersAction) -> None:
     t.add_argument("--prune-at", type=_iterations, default=None, metavar="IT[,IT...]",
                    help="the pruning iterations (default: one densification interval after densification ends, "
                         "and 40%% of the way from there to the end)")
-    t.add_argument("--prune-by", choices=("contribution", "efficiency"), default="contribution",
-                   help="with --prune: the score the lowest of which go: contribution (the summed blending weight) "
-                        "or efficiency (that weight per pixel the Gaussian costs to render)")
+    t.add_argument("--prune-by", choices=("contribution", "efficiency"), default=None,
+                   help="with --prune: the score the lowest of which go: contribution (the summed blending weight; "
+                        "the default) or efficiency (that weight per pixel the Gaussian costs to render)")
     t.add_argument("--refine-poses", action="store_true",
                    help="learn a rigid correction of each training frame's head pose with the avatar (for tracked "
                         "videos whose poses are off by about a pixel, e.g. `blendsplat track`'s output)")
