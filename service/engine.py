@@ -374,7 +374,8 @@ class Engine:
         self.cache = AvatarCache(self.store, settings.cache_bytes, self.metrics, settings.backend, threads,
                                  Schedule(lazy_tiles=settings.raster_lazy_tiles,
                                           square_blocks=settings.raster_square_blocks,
-                                          direct_rgba8=settings.raster_direct_rgba8))
+                                          direct_rgba8=settings.raster_direct_rgba8,
+                                          eight_bit_stop=settings.raster_eight_bit_stop))
         self.access = access or Access.trusted(settings)
         self.intake = UploadIntake(self.access)
         self.sessions: dict[str, Session] = {}

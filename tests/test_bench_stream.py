@@ -98,12 +98,16 @@ def test_verify_compares_jpeg_frames_in_jpeg_so_only_what_changed_counts():
         assert _compare("png", enc.encode(cold), cold, size) == (100.0, None)
 
 
-def test_bench_stream_verify_reports_the_streamed_frames_against_a_cold_render(live_server, capsys):
+def test_bench_stream_verify_reports_the_streamed_frames_against_a_cold_render(live_server, capsys, monkeypatch):
+    from render_core.raster.native import Schedule
     from service.cli import main
 
     base = ["bench", "stream", "--target", live_server.grpc_target, "--avatar", "demo", "--streams", "2", "--seconds",
             "1.5", "--warmup", "0.2", "--fps", "20", "--size", "48", "--json", "--metrics-url",
             live_server.http_url + "/metrics"]
+    # With the exact schedules alone, each streamed frame is the cold render's (identical, 100 dB)...
+    renderer = live_server.engine.cache.get("demo").renderer
+    monkeypatch.setattr(renderer, "schedule", Schedule(eight_bit_stop=False))
     assert main([*base, "--codec", "jpeg", "--verify", "5"]) == 0
     report = json.loads(capsys.readouterr().out)
     assert report["drive"] == "smooth" and report["errors"] == 0
@@ -115,6 +119,14 @@ def test_bench_stream_verify_reports_the_streamed_frames_against_a_cold_render(l
     report = json.loads(capsys.readouterr().out)
     assert report["drive"] == "random" and report["psnr_vs_cold_db"] == 100.0 and report["verify"]["frames"] == 3
     assert report["verify"]["psnr_vs_lossless_db"] is None
+    # ... and the precision switch (the 8-bit stop, on by default) shows: within a level, so >= 50 dB losslessly;
+    # through JPEG a flipped coefficient spreads over its block (about 47 dB on this small head, 55 at 512 px).
+    monkeypatch.undo()
+    assert main([*base, "--codec", "png", "--verify", "3"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert 50.0 <= report["psnr_vs_cold_db"] < 100.0 and report["verify"]["identical"] < 3
+    assert main([*base, "--codec", "jpeg", "--verify", "3"]) == 0
+    assert 40.0 <= json.loads(capsys.readouterr().out)["psnr_vs_cold_db"] < 100.0
     # Without --verify there is no such figure; H.264 cannot be verified frame by frame (an error before streaming).
     assert main(base) == 0
     assert "psnr_vs_cold_db" not in json.loads(capsys.readouterr().out)

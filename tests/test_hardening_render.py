@@ -420,7 +420,8 @@ def test_a_frame_that_fails_to_render_fails_only_its_own_session(live_server, mo
 # ------------------------------------------------------------------------------- finding 5: budget, fairness
 def test_a_reference_render_runs_alone_with_every_mechanism_off_and_gives_the_same_pixels(stub, monkeypatch):
     """RenderRequest.reference (what `bench stream --verify` asks for): the native renderer's baseline schedule,
-    never batched with other frames; the pixels are those of a normal render."""
+    never batched with other frames; the pixels are those of a normal render within one level (the 8-bit stop is
+    the one mechanism that changes them)."""
     from render_core.raster.native import Schedule
     from render_core.renderer import AvatarRenderer
 
@@ -436,7 +437,8 @@ def test_a_reference_render_runs_alone_with_every_mechanism_off_and_gives_the_sa
     frames = {ref: stub.Render(pb.RenderRequest(avatar_id="demo", width=SIZE, codec=pb.CODEC_RAW_RGBA, frame=pose,
                                                 reference=ref)).frame for ref in (True, False)}
     assert seen == [(1, Schedule.baseline()), (1, None)]
-    assert frames[True].data == frames[False].data and len(frames[True].data) == SIZE * SIZE * 4
+    exact, fast = (np.frombuffer(frames[ref].data, np.uint8).astype(np.int32) for ref in (True, False))
+    assert exact.size == SIZE * SIZE * 4 and np.abs(exact - fast).max() <= 1
 
 
 def test_a_frame_over_the_budget_is_refused_naming_the_size_or_camera(live_server, stub, monkeypatch):

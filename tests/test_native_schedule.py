@@ -1,6 +1,8 @@
 """The native renderer's schedule switches (render_core.raster.native.Schedule: lazy tiles, square blocks, direct
 RGBA8) change its cost, never a pixel: every combination gives bit-identical images on every SIMD path, the RGBA8
-output is to_rgba8 of the float images bit for bit, and the benchmark's side-by-side comparison says so."""
+output is to_rgba8 of the float images bit for bit, and the benchmark's side-by-side comparison says so. The
+precision switch (the 8-bit stop) leaves the float images alone and keeps the 8-bit ones within one level and
+50 dB of the exact ones."""
 
 from __future__ import annotations
 
@@ -11,6 +13,7 @@ import pytest
 import torch
 
 from render_core.camera import orbit
+from render_core.evaluation.metrics import psnr
 from render_core.raster import ShadedSplats, native
 from render_core.renderer import AvatarRenderer
 from render_core.tools.bench import bench_render, framed_camera, random_frames
@@ -19,8 +22,9 @@ from render_core.tools.synth import synth_avatar
 pytestmark = pytest.mark.skipif(not native.available(), reason="the native extension is not built")
 
 SIMD = native.simd_paths() if native.available() else []
-SCHEDULES = [native.Schedule(lazy, square, direct) for lazy, square, direct in itertools.product((False, True),
-                                                                                                  repeat=3)]
+# Every schedule, and the exact ones (the 8-bit stop changes 8-bit output only).
+SCHEDULES = [native.Schedule(*switches) for switches in itertools.product((False, True), repeat=4)]
+EXACT = [s for s in SCHEDULES if s.exact]
 SIZES = [(96, 96), (61, 37)]  # whole tiles, and partial tiles in both directions
 
 
@@ -49,6 +53,8 @@ def test_every_schedule_renders_the_same_bits(dense_head, simd, size):
         out = r.render(frame, cams, bg, schedule=schedule)
         for name in ("rgb", "alpha", "depth"):
             assert torch.equal(getattr(out, name), getattr(base, name)), (schedule, name)
+        if not schedule.exact:
+            continue
         rgba8, timings = r.render_rgba8(frame, cams, bg, schedule=schedule)
         assert rgba8.dtype == np.uint8 and rgba8.shape == (3, size[1], size[0], 4)
         assert np.array_equal(rgba8, want8), schedule
@@ -69,10 +75,28 @@ def test_posed_rasterization_is_the_same_under_every_schedule(dense_head, simd):
         assert torch.equal(out.depth, base.depth), schedule
 
 
+@pytest.mark.parametrize("simd", SIMD)
+@pytest.mark.parametrize("size", SIZES, ids=[f"{w}x{h}" for w, h in SIZES])
+def test_the_eight_bit_stop_keeps_each_byte_within_a_level_of_the_exact_image(dense_head, simd, size):
+    cams = _cams(dense_head, *size)
+    frame = random_frames(dense_head, 3, torch.Generator().manual_seed(3))
+    bg = torch.tensor([[0.2, 0.4, 0.6], [1.0, 1.0, 1.0], [0.0, 0.0, 0.0]])
+    r = AvatarRenderer(dense_head, "native", simd=simd)
+    exact, _ = r.render_rgba8(frame, cams, bg, schedule=native.Schedule(eight_bit_stop=False))
+    for square in (False, True):
+        stopped, _ = r.render_rgba8(frame, cams, bg, schedule=native.Schedule(square_blocks=square))
+        diff = np.abs(stopped.astype(np.int32) - exact)
+        assert diff.max() <= 1, (square, int(diff.max()))
+        assert 0 < np.count_nonzero(diff) < diff.size // 4  # it stops early (saturated pixels change a little)
+        assert psnr(stopped[..., :3], exact[..., :3]) >= 50.0
+        assert np.array_equal(stopped[..., 3], exact[..., 3])  # a stopped pixel is opaque either way
+
+
 def test_the_renderer_default_schedule_is_every_switch_and_can_be_turned_off(dense_head):
-    assert AvatarRenderer(dense_head, "native").schedule == native.Schedule(True, True, True)
+    assert AvatarRenderer(dense_head, "native").schedule == native.Schedule(True, True, True, True)
     off = AvatarRenderer(dense_head, "native", schedule=native.Schedule.baseline()).schedule
-    assert off == native.Schedule(False, False, False)
+    assert off == native.Schedule(False, False, False, False) and off.exact
+    assert not native.Schedule().exact and native.Schedule(direct_rgba8=False).exact
 
 
 def test_rgba8_of_the_reference_backend_is_to_rgba8_of_its_render(dense_head):
@@ -96,15 +120,18 @@ def test_unknown_schedule_bits_are_refused(dense_head):
         _native.render(packed.handle, *args, rgb, alpha, depth, "auto", 0, 64)
     with pytest.raises(ValueError, match="flags"):
         _native.render_rgba8(packed.handle, *args, np.zeros((1, 16, 16, 4), np.uint8), "auto", 0, 64)
+    assert _native.EIGHT_BIT_STOP == 4  # known: the switch the schedule sets
 
 
 def test_bench_render_compares_the_schedules_side_by_side(dense_head):
     report = bench_render("native", avatar=dense_head, size=64, streams=2, frames=2, warmup=1, schedule="compare")
     cmp = report["vs_baseline"]
-    assert cmp["identical"] is True and cmp["frames"] == 2 and cmp["speedup"] > 0
+    assert cmp["frames"] == 2 and cmp["speedup"] > 0
+    assert cmp["identical"] is False and 50.0 <= cmp["psnr_db"] < 100.0 and cmp["max_level_difference"] == 1
     assert cmp["baseline"]["lazy_tiles"] is False and cmp["schedule"]["lazy_tiles"] is True
     assert {"blend", "lbs", "raster", "bin", "total"} == set(cmp["schedule"]["ms"])
-    assert report["schedule"] == {"lazy_tiles": True, "square_blocks": True, "direct_rgba8": True}
+    assert report["schedule"] == {"lazy_tiles": True, "square_blocks": True, "direct_rgba8": True,
+                                  "eight_bit_stop": True}
     assert report["frames_per_core_second"] == pytest.approx(report["aggregate_fps"] / report["threads"], rel=1e-3)
     off = bench_render("native", avatar=dense_head, size=32, frames=1, warmup=0, schedule="off")
     assert off["schedule"]["square_blocks"] is False and "vs_baseline" not in off

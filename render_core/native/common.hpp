@@ -11,6 +11,9 @@ constexpr float kEps2d = 0.3f;
 constexpr float kAlphaMin = 1.0f / 255.0f;
 constexpr float kAlphaMax = 0.999f;
 constexpr float kTStop = 1e-4f;
+// The 8-bit stop (kEightBitStop): a pixel whose transmittance falls below this after a splat is composited stops
+// (as well as where the exact rule stops it); what lies behind could change its colour by a quarter of a level.
+constexpr float kTStop8 = 1.0f / 1020.0f;
 constexpr int kMaxBatch = 64;  // frames blended together per pass (larger batches are split)
 
 // A packed avatar (render_core/packed.py: the layout of a schema-2 bundle; the arrays belong to Python).
@@ -110,6 +113,11 @@ enum RasterFlags : unsigned {
     kLazyTiles = 1u,     // gather a tile's splats and their row spans a chunk at a time; stop when every pixel stopped
     kSquareBlocks = 2u,  // blocks of 4 x 4 pixels (16 lanes; 4 x 2 with 8) instead of 8 x 2 (8 x 1)
     kRasterDefault = kLazyTiles | kSquareBlocks,
+    // Not a schedule switch, a precision one: on 8-bit output alone (no float image asked for), each pixel also
+    // stops once a composited splat takes its transmittance below kTStop8 (the exact rule goes on to kTStop): the
+    // 8-bit values stay within a quarter of a level of the exact ones before rounding (colours in 0..1).
+    kEightBitStop = 4u,
+    kRasterKnown = kRasterDefault | kEightBitStop,
 };
 
 struct Kernels {

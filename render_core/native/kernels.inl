@@ -541,7 +541,7 @@ constexpr int kLazyChunk = 128;  // splats gathered and spanned at a time by the
 // arithmetic and order are the same whatever the chunks and the block shape: the images are bit-identical, and
 // the backward (splat_alpha) recomputes the same alpha row by row.
 // Train: also write each pixel's final transmittance and last contributor (1-based; 0: none) for the backward.
-template <bool Train, int BR, int BW>
+template <bool Train, int BR, int BW, bool Stop8 = false>
 static void composite_tile(const TileSplat* sorted, const uint32_t* pos, int count, int tx, int ty, const Cam& cam,
                            const float* background, const TileOut& o, bool lazy) {
     static_assert(BR * BW == W, "a block is one vector");
@@ -564,6 +564,7 @@ static void composite_tile(const TileSplat* sorted, const uint32_t* pos, int cou
     const F col = V::load(lane_col), row = V::load(lane_row);
     const F one = V::set1(1.0f), zero = V::set1(0.0f);
     const F amax = V::set1(kAlphaMax), amin = V::set1(kAlphaMin), tstop = V::set1(kTStop);
+    const F tstop8 = V::set1(kTStop8);
     // Per block: T, R, G, B, depth, last contributor, live (1 or 0) per lane.
     alignas(64) float state[kMaxBlocks][7][W];
     bool block_live[kMaxBlocks];
@@ -635,10 +636,13 @@ static void composite_tile(const TileSplat* sorted, const uint32_t* pos, int cou
                     Cr = V::fma(w, V::set1(s.r), Cr);
                     Cg = V::fma(w, V::set1(s.g), Cg);
                     Cb = V::fma(w, V::set1(s.b), Cb);
-                    D = V::fma(w, V::set1(s.depth), D);
+                    if constexpr (!Stop8) D = V::fma(w, V::set1(s.depth), D);  // 8-bit output has no depth
                     T = V::select(stop, T, nt);
                     if constexpr (Train) L = V::select(V::mandnot(stop, ok), V::set1(float(c0 + i + 1)), L);
-                    live = V::mandnot(stop, live);
+                    if constexpr (Stop8)  // the exact stop, or this splat composited and T below kTStop8
+                        live = V::mandnot(V::mor(stop, V::le_and(ok, nt, tstop8)), live);
+                    else
+                        live = V::mandnot(stop, live);
                 }
             }
             V::store(state[bi][0], T), V::store(state[bi][1], Cr), V::store(state[bi][2], Cg);
@@ -684,10 +688,19 @@ constexpr int kSquareBW = W >= 8 ? 4 : W;
 static void raster_tile(const TileSplat* sorted, const uint32_t* pos, int count, int tx, int ty, const Cam& cam,
                         const float* background, const TileOut& out, unsigned flags) {
     const bool lazy = (flags & kLazyTiles) != 0;
-    if (flags & kSquareBlocks)
-        composite_tile<false, W / kSquareBW, kSquareBW>(sorted, pos, count, tx, ty, cam, background, out, lazy);
-    else
+    const bool stop8 = (flags & kEightBitStop) != 0 && out.rgba8 != nullptr && out.rgb == nullptr &&
+                       out.alpha == nullptr && out.depth == nullptr;
+    if (flags & kSquareBlocks) {
+        if (stop8)
+            composite_tile<false, W / kSquareBW, kSquareBW, true>(sorted, pos, count, tx, ty, cam, background, out,
+                                                                  lazy);
+        else
+            composite_tile<false, W / kSquareBW, kSquareBW>(sorted, pos, count, tx, ty, cam, background, out, lazy);
+    } else if (stop8) {
+        composite_tile<false, W / kWideBW, kWideBW, true>(sorted, pos, count, tx, ty, cam, background, out, lazy);
+    } else {
         composite_tile<false, W / kWideBW, kWideBW>(sorted, pos, count, tx, ty, cam, background, out, lazy);
+    }
 }
 
 // The training forward: the same image, plus T and the last contributor per pixel (see backward.inl).

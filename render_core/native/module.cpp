@@ -205,7 +205,7 @@ nb::dict timings(const bs::Timings& t, const bs::Kernels& k, int threads) {
 }
 
 void check_flags(unsigned flags) {
-    require((flags & ~unsigned(bs::kRasterDefault)) == 0, "flags: unknown compositing schedule bits");
+    require((flags & ~unsigned(bs::kRasterKnown)) == 0, "flags: unknown compositing schedule bits");
 }
 
 // The inputs of render / render_rgba8: B frames and their cameras.
@@ -486,6 +486,7 @@ NB_MODULE(_native, m) {
     const unsigned schedule = bs::kRasterDefault;
     m.attr("LAZY_TILES") = unsigned(bs::kLazyTiles);
     m.attr("SQUARE_BLOCKS") = unsigned(bs::kSquareBlocks);
+    m.attr("EIGHT_BIT_STOP") = unsigned(bs::kEightBitStop);
     m.def("render", &render, "avatar"_a, "expression"_a, "joint_rotations"_a, "eyelids"_a, "K"_a, "R"_a, "t"_a,
           "width"_a, "height"_a, "antialiased"_a, "background"_a, "rgb"_a, "alpha"_a, "depth"_a, "isa"_a = "auto",
           "threads"_a = 0, "flags"_a = schedule);

@@ -29,6 +29,7 @@ from ..avatar import Avatar
 from ..camera import Cameras, orbit
 from ..deform import Frame
 from ..errors import OptionError
+from ..evaluation.metrics import psnr_from_mse
 from ..media.pixels import to_rgba8
 from ..raster import ShadedSplats, check_backend, gsplat_backend, native
 from ..renderer import AvatarRenderer
@@ -135,10 +136,12 @@ def compare_schedules(renderer: AvatarRenderer, cams: Cameras, frames: int, warm
                       g: torch.Generator) -> dict:
     """The native renderer's schedule against :meth:`Schedule.baseline` (every switch off), side by side in one
     process: each frame rendered to 8-bit RGBA (what a stream encodes) by both, in alternating order; each one's
-    stage medians, the speed-up of the totals and whether every image was identical."""
+    stage medians, the speed-up of the totals, whether every image was identical and, for the precision switch
+    (``eight_bit_stop``), the PSNR of the schedule's RGB against the baseline's (255 levels, pooled over the frames)
+    and the largest difference in levels."""
     runs = {"baseline": native.Schedule.baseline(), "schedule": renderer.schedule}
     stages: dict[str, dict[str, list[float]]] = {name: {} for name in runs}
-    identical = True
+    identical, sq_error, values, max_levels = True, 0.0, 0, 0
     for i in range(warmup + frames):
         frame = random_frames(renderer.avatar, len(cams), g)
         images = {}
@@ -151,10 +154,14 @@ def compare_schedules(renderer: AvatarRenderer, cams: Cameras, frames: int, warm
                     stages[name].setdefault(key, []).append(float(timings[key]))
                 stages[name].setdefault("total", []).append(total)
         identical = identical and bool(np.array_equal(images["baseline"], images["schedule"]))
+        diff = images["schedule"][..., :3].astype(np.int32) - images["baseline"][..., :3]
+        sq_error, values = sq_error + float(np.square(diff, dtype=np.float64).sum()), values + diff.size
+        max_levels = max(max_levels, int(np.abs(diff).max()))
     ms = {name: {k: round(statistics.median(v), 3) for k, v in rows.items()} for name, rows in stages.items()}
     return {**{name: {**asdict(s), "ms": ms[name], "fps": round(1000.0 / ms[name]["total"] * len(cams), 2)}
                for name, s in runs.items()},
             "speedup": round(ms["baseline"]["total"] / ms["schedule"]["total"], 3), "identical": identical,
+            "psnr_db": round(psnr_from_mse(sq_error / values, 255.0), 2), "max_level_difference": max_levels,
             "frames": frames}
 
 

@@ -907,9 +907,9 @@ def _add_bench_commands(sub: argparse._SubParsersAction) -> argparse._SubParsers
     b.add_argument("--trace", type=Path, default=None,
                    help="also profile 20 frames with torch.profiler: Chrome trace here, top operators in the report")
     b.add_argument("--schedule", choices=("on", "off", "compare"), default="on",
-                   help="native: the compositing schedule's switches (lazy tiles, square blocks, direct RGBA8) on, "
-                        "off, or both side by side on the same frames (vs_baseline, with identical: true when "
-                        "every image matched)")
+                   help="native: the compositing schedule's switches (lazy tiles, square blocks, direct RGBA8, "
+                        "the 8-bit stop) on, off, or both side by side on the same frames (vs_baseline, with "
+                        "identical: true when every image matched, psnr_db and max_level_difference)")
     b.add_argument("--json", action="store_true")
     b.set_defaults(fn=cmd_bench_render)
     b = bsub.add_parser("raster-backward", help="forward + backward of the differentiable rasterizer (training's "
