@@ -39,13 +39,17 @@ def _cams(avatar, w: int, h: int):
     return orbit([0.0, 25.0, -15.0], width=w, height=h, focal=focal)
 
 
+def _scene(avatar, simd: str, size: tuple[int, int]):
+    """A renderer on one SIMD path, three frames, their cameras and three backgrounds."""
+    frame = random_frames(avatar, 3, torch.Generator().manual_seed(3))
+    bg = torch.tensor([[0.2, 0.4, 0.6], [1.0, 1.0, 1.0], [0.0, 0.0, 0.0]])
+    return AvatarRenderer(avatar, "native", simd=simd), frame, _cams(avatar, *size), bg
+
+
 @pytest.mark.parametrize("simd", SIMD)
 @pytest.mark.parametrize("size", SIZES, ids=[f"{w}x{h}" for w, h in SIZES])
 def test_every_schedule_renders_the_same_bits(dense_head, simd, size):
-    cams = _cams(dense_head, *size)
-    frame = random_frames(dense_head, 3, torch.Generator().manual_seed(3))
-    bg = torch.tensor([[0.2, 0.4, 0.6], [1.0, 1.0, 1.0], [0.0, 0.0, 0.0]])
-    r = AvatarRenderer(dense_head, "native", simd=simd)
+    r, frame, cams, bg = _scene(dense_head, simd, size)
     base = r.render(frame, cams, bg, schedule=native.Schedule.baseline())
     assert float((base.alpha > 0.999).float().mean()) > 0.1  # saturated pixels: lazy tiles stop early somewhere
     want8 = native.to_rgba8(base.rgb, base.alpha)
@@ -78,10 +82,7 @@ def test_posed_rasterization_is_the_same_under_every_schedule(dense_head, simd):
 @pytest.mark.parametrize("simd", SIMD)
 @pytest.mark.parametrize("size", SIZES, ids=[f"{w}x{h}" for w, h in SIZES])
 def test_the_eight_bit_stop_keeps_each_byte_within_a_level_of_the_exact_image(dense_head, simd, size):
-    cams = _cams(dense_head, *size)
-    frame = random_frames(dense_head, 3, torch.Generator().manual_seed(3))
-    bg = torch.tensor([[0.2, 0.4, 0.6], [1.0, 1.0, 1.0], [0.0, 0.0, 0.0]])
-    r = AvatarRenderer(dense_head, "native", simd=simd)
+    r, frame, cams, bg = _scene(dense_head, simd, size)
     exact, _ = r.render_rgba8(frame, cams, bg, schedule=native.Schedule(eight_bit_stop=False))
     for square in (False, True):
         stopped, _ = r.render_rgba8(frame, cams, bg, schedule=native.Schedule(square_blocks=square))
