@@ -40,13 +40,13 @@ def reference(live_server):
 
 
 def expected_image(reference, coefficients, joints, size=SIZE) -> np.ndarray:
-    """[H, W, 4] uint8 as render_core renders the pose (front camera of the avatar, black background)."""
+    """[H, W, 4] uint8 as render_core renders the pose to 8-bit RGBA, as the service does (front camera of the
+    avatar, black background; the default schedule, 8-bit stop included)."""
     avatar, renderer = reference
     frame = Frame.from_params(avatar, expression=torch.tensor(np.asarray(coefficients, np.float32)),
                               joints={k: torch.tensor(np.asarray(v, np.float32)) for k, v in joints.items()})
-    out = renderer.render(frame, default_camera(avatar, size, size), torch.zeros(3))
-    rgba = torch.cat([out.rgb[0], out.alpha[0, ..., None]], -1)
-    return (rgba.clamp(0, 1) * 255 + 0.5).to(torch.uint8).numpy()
+    rgba, _ = renderer.render_rgba8(frame, default_camera(avatar, size, size), torch.zeros(3))
+    return rgba[0]
 
 
 def random_pose(rng: np.random.Generator, k: int) -> tuple[list[float], dict[str, list[float]]]:
