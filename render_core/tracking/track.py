@@ -87,7 +87,7 @@ def track_video(video: str | os.PathLike, out: str | os.PathLike, *, fps: float 
     from ..facemodel.open_head import open_head
     from .fit import fit_frames
     from .photometric import EXPRESSION_PASSES, refine_on_pixels
-    from .segment import head_matte, mesh_silhouette, person_probability
+    from .segment import head_matte, mesh_silhouette, person_probability, sharpen_edge
 
     if crop not in CROPS:
         raise TrackingError(f"unknown crop {crop!r}; one of {', '.join(CROPS)}", field="crop")
@@ -175,7 +175,8 @@ def track_video(video: str | os.PathLike, out: str | os.PathLike, *, fps: float 
     def mask_of(k: int, rgb: np.ndarray) -> np.ndarray:
         head = mesh_silhouette(posed(k), faces, fit.K, size, size)
         prob = person_probability(rgb)
-        return np.round(255 * head_matte(prob, landmarks[kept[k]], silhouette=head, rgb=rgb)).astype(np.uint8)
+        matte = sharpen_edge(head_matte(prob, landmarks[kept[k]], silhouette=head, rgb=rgb))
+        return np.round(255 * matte).astype(np.uint8)
 
     workers = threads or len(os.sched_getaffinity(0))
     masks: deque[np.ndarray] = deque()
