@@ -38,13 +38,13 @@ class Settings(BaseSettings):
                                                       "and the tile stopped once every pixel has (same pixels)")
     raster_square_blocks: bool = Field(True, description="native compositing in 4x4-pixel blocks instead of 8x2 "
                                                          "(same pixels)")
+    raster_direct_rgba8: bool = Field(True, description="native: 8-bit RGBA for the encoders written by the "
+                                                        "compositing loop, not converted from float images after it "
+                                                        "(same pixels)")
     raster_eight_bit_stop: bool = Field(True, description="native, 8-bit output: a pixel stops compositing once "
                                                           "what lies behind it could move it by at most a quarter "
                                                           "of a level (within one level of the exact image, "
                                                           "fewer splats composited)")
-    raster_direct_rgba8: bool = Field(True, description="native: 8-bit RGBA for the encoders written by the "
-                                                        "compositing loop, not converted from float images after it "
-                                                        "(same pixels)")
     cache_bytes: int = Field(4 << 30, ge=1 << 20, description="memory budget of loaded avatars")
     max_sessions: int = Field(32, ge=1, description="concurrent streams per process; more get RESOURCE_EXHAUSTED")
     max_in_flight: int = Field(2, ge=1, le=16, description="default frames sent but not acknowledged")

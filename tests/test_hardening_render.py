@@ -418,7 +418,7 @@ def test_a_frame_that_fails_to_render_fails_only_its_own_session(live_server, mo
 
 
 # ------------------------------------------------------------------------------- finding 5: budget, fairness
-def test_a_reference_render_runs_alone_with_every_mechanism_off_and_gives_the_same_pixels(stub, monkeypatch):
+def test_a_reference_render_runs_alone_with_every_mechanism_off_within_a_level_of_a_normal_one(stub, monkeypatch):
     """RenderRequest.reference (what `bench stream --verify` asks for): the native renderer's baseline schedule,
     never batched with other frames; the pixels are those of a normal render within one level (the 8-bit stop is
     the one mechanism that changes them)."""

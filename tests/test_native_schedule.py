@@ -57,8 +57,7 @@ def test_every_schedule_renders_the_same_bits(dense_head, simd, size):
         out = r.render(frame, cams, bg, schedule=schedule)
         for name in ("rgb", "alpha", "depth"):
             assert torch.equal(getattr(out, name), getattr(base, name)), (schedule, name)
-        if not schedule.exact:
-            continue
+    for schedule in EXACT:
         rgba8, timings = r.render_rgba8(frame, cams, bg, schedule=schedule)
         assert rgba8.dtype == np.uint8 and rgba8.shape == (3, size[1], size[0], 4)
         assert np.array_equal(rgba8, want8), schedule

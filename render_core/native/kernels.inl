@@ -685,22 +685,25 @@ static void composite_tile(const TileSplat* sorted, const uint32_t* pos, int cou
 constexpr int kWideBW = W < 8 ? W : 8;
 constexpr int kSquareBW = W >= 8 ? 4 : W;
 
+// One block shape, the exact rule or the 8-bit stop.
+template <int BR, int BW>
+static void composite_shape(const TileSplat* sorted, const uint32_t* pos, int count, int tx, int ty, const Cam& cam,
+                            const float* background, const TileOut& out, bool lazy, bool stop8) {
+    if (stop8)
+        composite_tile<false, BR, BW, true>(sorted, pos, count, tx, ty, cam, background, out, lazy);
+    else
+        composite_tile<false, BR, BW>(sorted, pos, count, tx, ty, cam, background, out, lazy);
+}
+
 static void raster_tile(const TileSplat* sorted, const uint32_t* pos, int count, int tx, int ty, const Cam& cam,
                         const float* background, const TileOut& out, unsigned flags) {
     const bool lazy = (flags & kLazyTiles) != 0;
     const bool stop8 = (flags & kEightBitStop) != 0 && out.rgba8 != nullptr && out.rgb == nullptr &&
                        out.alpha == nullptr && out.depth == nullptr;
-    if (flags & kSquareBlocks) {
-        if (stop8)
-            composite_tile<false, W / kSquareBW, kSquareBW, true>(sorted, pos, count, tx, ty, cam, background, out,
-                                                                  lazy);
-        else
-            composite_tile<false, W / kSquareBW, kSquareBW>(sorted, pos, count, tx, ty, cam, background, out, lazy);
-    } else if (stop8) {
-        composite_tile<false, W / kWideBW, kWideBW, true>(sorted, pos, count, tx, ty, cam, background, out, lazy);
-    } else {
-        composite_tile<false, W / kWideBW, kWideBW>(sorted, pos, count, tx, ty, cam, background, out, lazy);
-    }
+    if (flags & kSquareBlocks)
+        composite_shape<W / kSquareBW, kSquareBW>(sorted, pos, count, tx, ty, cam, background, out, lazy, stop8);
+    else
+        composite_shape<W / kWideBW, kWideBW>(sorted, pos, count, tx, ty, cam, background, out, lazy, stop8);
 }
 
 // The training forward: the same image, plus T and the last contributor per pixel (see backward.inl).

@@ -59,9 +59,9 @@ class Schedule:
 
     The fourth is a precision switch, for 8-bit output alone (``direct_rgba8``; float images never change):
 
-    - ``eight_bit_stop``: a pixel stops once its transmittance is below 1/1020 (the splat that took it there
-      composited) instead of 1e-4: what lies behind could move its colour by at most a quarter of an 8-bit level,
-      so the bytes stay within one level of the exact ones (>= 60 dB on the 64k head; tests gate it at 50 dB).
+    - ``eight_bit_stop``: a pixel also stops once a composited splat takes its transmittance below 1/1020 (the
+      exact rule alone goes on to 1e-4): what lies behind could move its colour by at most a quarter of an 8-bit
+      level, so the bytes stay within one level of the exact ones (>= 60 dB on the 64k head; tests gate it at 50 dB).
     """
 
     lazy_tiles: bool = True
