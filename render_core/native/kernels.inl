@@ -655,28 +655,43 @@ static void composite_tile(const TileSplat* sorted, const uint32_t* pos, int cou
     // x * 255 rounded to float, then + 0.5 (as to_rgba8: two roundings, never one FMA), truncated when stored.
     const F bg[3] = {V::set1(background[0]), V::set1(background[1]), V::set1(background[2])};
     const F k255 = V::set1(255.0f), half = V::set1(0.5f);
+    float* const rgb = o.rgb;
+    float* const alpha = o.alpha;
+    float* const depth = o.depth;
+    uint8_t* const rgba8 = o.rgba8;
+    static_assert(__BYTE_ORDER__ == __ORDER_LITTLE_ENDIAN__, "RGBA8 words are stored little-endian");
     for (int bi = 0; bi < nblocks; ++bi) {
         const int r0 = bi / bcols * BR, x0 = xb + bi % bcols * BW;
         const F T = V::load(state[bi][0]);
         alignas(64) float px[8][W];
         for (int c = 0; c < 3; ++c) V::store(px[c], V::fma(T, bg[c], V::load(state[bi][1 + c])));
         V::store(px[3], one - T);
-        if (o.rgba8 != nullptr)
+        if (rgba8 != nullptr)
             for (int c = 0; c < 4; ++c)
                 V::store(px[4 + c], V::opaque(V::min(V::max(V::load(px[c]), zero), one) * k255) + half);
-        for (int l = 0; l < W; ++l) {
-            const int x = x0 + l % BW, r = l / BW;
-            if (x >= xe || r0 + r >= rows) continue;
-            const size_t p = size_t(yb + r0 + r) * cam.width + x;
-            if (o.rgb != nullptr) o.rgb[p * 3 + 0] = px[0][l], o.rgb[p * 3 + 1] = px[1][l], o.rgb[p * 3 + 2] = px[2][l];
-            if (o.alpha != nullptr) o.alpha[p] = px[3][l];
-            if (o.depth != nullptr) o.depth[p] = state[bi][4][l];
-            if (o.rgba8 != nullptr) {
-                uint8_t* q8 = o.rgba8 + p * 4;
-                q8[0] = uint8_t(px[4][l]), q8[1] = uint8_t(px[5][l]), q8[2] = uint8_t(px[6][l]);
-                q8[3] = uint8_t(px[7][l]);
+        // Row by row, each output in its own loop (the pointers in locals: the byte stores could alias them),
+        // an RGBA8 row packed into 32-bit words and copied at once.
+        const int ncol = std::min(BW, xe - x0), nrow = std::min(BR, rows - r0);
+        for (int r = 0; r < nrow; ++r) {
+            const size_t p0 = size_t(yb + r0 + r) * cam.width + x0;
+            const int l0 = r * BW;
+            if (rgba8 != nullptr) {
+                uint32_t packed[BW];
+                for (int x = 0; x < BW; ++x)
+                    packed[x] = uint32_t(px[4][l0 + x]) | uint32_t(px[5][l0 + x]) << 8 |
+                                uint32_t(px[6][l0 + x]) << 16 | uint32_t(px[7][l0 + x]) << 24;
+                std::memcpy(rgba8 + p0 * 4, packed, size_t(ncol) * 4);
             }
-            if constexpr (Train) o.T[p] = state[bi][0][l], o.last[p] = uint32_t(state[bi][5][l]);
+            if (rgb != nullptr)
+                for (int x = 0; x < ncol; ++x)
+                    for (int c = 0; c < 3; ++c) rgb[(p0 + x) * 3 + c] = px[c][l0 + x];
+            if (alpha != nullptr)
+                for (int x = 0; x < ncol; ++x) alpha[p0 + x] = px[3][l0 + x];
+            if (depth != nullptr)
+                for (int x = 0; x < ncol; ++x) depth[p0 + x] = state[bi][4][l0 + x];
+            if constexpr (Train)
+                for (int x = 0; x < ncol; ++x)
+                    o.T[p0 + x] = state[bi][0][l0 + x], o.last[p0 + x] = uint32_t(state[bi][5][l0 + x]);
         }
     }
 }
