@@ -123,6 +123,19 @@ def test_unknown_schedule_bits_are_refused(dense_head):
     assert _native.EIGHT_BIT_STOP == 4  # known: the switch the schedule sets
 
 
+def test_bench_render_times_the_8_bit_output_a_stream_encodes(dense_head, monkeypatch):
+    calls = []
+    rgba8 = AvatarRenderer.render_rgba8
+    monkeypatch.setattr(AvatarRenderer, "render_rgba8", lambda self, *a, **k: calls.append(1) or rgba8(self, *a, **k))
+    report = bench_render("native", avatar=dense_head, size=32, frames=2, warmup=1)
+    assert report["output"] == "rgba8" and len(calls) == 3 and 0.0 < report["coverage"] < 1.0
+    assert {"blend", "lbs", "raster", "bin", "total"} == set(report["ms"])
+    calls.clear()
+    floats = bench_render("native", avatar=dense_head, size=32, frames=2, warmup=1, output="float")
+    assert floats["output"] == "float" and calls == []
+    assert floats["coverage"] == pytest.approx(report["coverage"], abs=0.02)  # the same frames (same seed)
+
+
 def test_bench_render_compares_the_schedules_side_by_side(dense_head):
     report = bench_render("native", avatar=dense_head, size=64, streams=2, frames=2, warmup=1, schedule="compare")
     cmp = report["vs_baseline"]

@@ -76,9 +76,10 @@ STAGES = ("blend", "lbs", "shade", "deform", "raster", "bin")
 
 
 def _time_frames(renderer: AvatarRenderer, cams: Cameras, frames: int, warmup: int, g: torch.Generator,
-                 label: str | None = None) -> dict:
+                 label: str | None = None, output: str = "float") -> dict:
     """Medians of ``frames`` timed renders after ``warmup``; with ``label`` each render is logged as it ends (for
-    slow backends: the reference)."""
+    slow backends: the reference). ``output``: ``"float"`` (:meth:`AvatarRenderer.render`: RGB, alpha and depth)
+    or ``"rgba8"`` (:meth:`AvatarRenderer.render_rgba8`: the 8-bit RGBA a stream encodes)."""
     stages: dict[str, list[float]] = {}
     totals: list[float] = []
     covs: list[float] = []
@@ -86,19 +87,24 @@ def _time_frames(renderer: AvatarRenderer, cams: Cameras, frames: int, warmup: i
     for i in range(warmup + frames):
         frame = random_frames(renderer.avatar, len(cams), g)
         t0 = time.perf_counter()
-        out = renderer.render(frame, cams)
+        if output == "rgba8":
+            image, timings = renderer.render_rgba8(frame, cams)
+            alpha = torch.from_numpy(image[..., 3]).float() / 255.0
+        else:
+            out = renderer.render(frame, cams)
+            timings, alpha = out.timings, out.alpha
         total = (time.perf_counter() - t0) * 1e3
         if label is not None:
             log.info("%s: %s %d/%d: %.1f s", label, "warm-up frame" if i < warmup else "frame",
                      i + 1 if i < warmup else i + 1 - warmup, warmup if i < warmup else frames, total / 1e3)
         if i < warmup:
             continue
-        timings = out.timings or {}
+        timings = timings or {}
         for key in STAGES:
             if key in timings:
                 stages.setdefault(key, []).append(float(timings[key]))
         totals.append(total)
-        covs.append(coverage(out.alpha))
+        covs.append(coverage(alpha))
     stages["total"] = totals
     return {"ms": {k: round(statistics.median(v), 3) for k, v in stages.items()},
             "coverage": round(statistics.mean(covs), 4), "last_timings": timings}
@@ -130,6 +136,7 @@ def profile_frames(renderer: AvatarRenderer, cams: Cameras, g: torch.Generator, 
 
 
 SCHEDULES = ("on", "off", "compare")
+OUTPUTS = ("rgba8", "float")
 
 
 def compare_schedules(renderer: AvatarRenderer, cams: Cameras, frames: int, warmup: int,
@@ -190,6 +197,7 @@ def bench_render(
     layout: str = "dense",
     fuse: str = "graph",
     schedule: str = "on",
+    output: str = "rgba8",
 ) -> dict:
     """Time ``frames`` frames (after ``warmup``) of ``streams`` batched streams; returns the JSON report.
 
@@ -206,9 +214,15 @@ def bench_render(
 
     ``schedule`` (native): ``"on"`` (every :class:`~render_core.raster.native.Schedule` switch), ``"off"`` (the
     baseline), or ``"compare"``: the timed frames with the schedule on, then the same frames rendered to RGBA8 by
-    both schedules side by side (``vs_baseline``: :func:`compare_schedules`)."""
+    both schedules side by side (``vs_baseline``: :func:`compare_schedules`).
+
+    ``output``: what the timed frames render: ``"rgba8"`` (the default: the 8-bit RGBA a stream encodes, which the
+    native backend writes from its compositing loop, with the 8-bit stop) or ``"float"`` (RGB, alpha and depth as
+    training and ``render`` take them)."""
     if schedule not in SCHEDULES:
         raise OptionError(f"must be one of {', '.join(SCHEDULES)}, got {schedule!r}", field="schedule")
+    if output not in OUTPUTS:
+        raise OptionError(f"must be one of {', '.join(OUTPUTS)}, got {output!r}", field="output")
     _check_counts(1, size=size, streams=streams, frames=frames)
     _check_counts(0, warmup=warmup, reference_frames=reference_frames, threads=threads)
     backend = check_backend(backend)  # before building the avatar: an unavailable backend fails at once
@@ -227,7 +241,7 @@ def bench_render(
     cams = framed_camera(avatar, size).expand(streams)
     g = torch.Generator().manual_seed(seed + 1)
     log.info("timing %d frame(s) of %d stream(s) at %d px (after %d warm-up)", frames, streams, size, warmup)
-    timed = _time_frames(renderer, cams, frames, warmup, g)
+    timed = _time_frames(renderer, cams, frames, warmup, g, output=output)
     ms = timed["ms"]
     fps = 1000.0 / ms["total"]
     report = {
@@ -241,6 +255,7 @@ def bench_render(
         "sh_degree": avatar.sh_degree,
         "precision": renderer.device_avatar.precision if renderer.device_avatar is not None else avatar.precision,
         "raster_mode": avatar.raster_mode,
+        "output": output,
         "coverage": timed["coverage"],
         "fps": round(fps, 3),
         "aggregate_fps": round(fps * streams, 3),
@@ -286,7 +301,8 @@ def bench_render(
     if renderer.backend != "reference" and reference_frames > 0:
         log.info("timing %d frame(s) of the torch reference backend for the speed-up (slow: tens of seconds a "
                  "frame at 64k Gaussians; --reference-frames 0 skips it)", reference_frames)
-        ref = _time_frames(AvatarRenderer(avatar, "reference"), cams, reference_frames, 1, g, label="reference")
+        ref = _time_frames(AvatarRenderer(avatar, "reference"), cams, reference_frames, 1, g, label="reference",
+                          output=output)
         ref_fps = 1000.0 / ref["ms"]["total"]
         report["vs_reference"] = {"reference_fps": round(ref_fps, 4), "speedup": round(fps / ref_fps, 1),
                                   "reference_ms": ref["ms"], "frames": reference_frames}

@@ -169,7 +169,7 @@ def cmd_bench_render(args: argparse.Namespace) -> int:
                           sh_degree=args.sh_degree, precision=args.precision, seed=args.seed, avatar=avatar,
                           reference_frames=args.reference_frames, threads=args.threads,
                           trace=None if args.trace is None else str(args.trace), layout=args.layout,
-                          fuse=args.fuse, schedule=args.schedule)
+                          fuse=args.fuse, schedule=args.schedule, output=args.output)
     if args.json:
         _emit(report)
     else:
@@ -910,6 +910,9 @@ def _add_bench_commands(sub: argparse._SubParsersAction) -> argparse._SubParsers
                    help="native: the compositing schedule's switches (lazy tiles, square blocks, direct RGBA8, "
                         "the 8-bit stop) on, off, or both side by side on the same frames (vs_baseline, with "
                         "identical: true when every image matched, psnr_db and max_level_difference)")
+    b.add_argument("--output", choices=("rgba8", "float"), default="rgba8",
+                   help="what the timed frames render: the 8-bit RGBA a stream encodes (default) or the float "
+                        "RGB, alpha and depth of training and `render`")
     b.add_argument("--json", action="store_true")
     b.set_defaults(fn=cmd_bench_render)
     b = bsub.add_parser("raster-backward", help="forward + backward of the differentiable rasterizer (training's "
