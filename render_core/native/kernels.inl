@@ -534,7 +534,8 @@ constexpr int kLazyChunk = 128;  // splats gathered and spanned at a time by the
 // One 16x16 tile, in blocks of BR rows x BW columns, one vector each (BR x BW = W lanes). A block composites the
 // Gaussians that reach it, in depth order, branch-free, with its transmittance, colour and depth in registers,
 // until all its pixels have stopped; which Gaussians reach it comes from every row's exact pixel span of each
-// Gaussian's eligibility ellipse (tile_row_spans), scanned W Gaussians at a time.
+// Gaussian's eligibility ellipse (tile_row_spans), as one reach mask per block and W Gaussians, computed for a whole
+// row of blocks at a time.
 // The splats are taken in chunks: all at once (eager), or kLazyChunk at a time (lazy: a chunk is gathered and
 // spanned, for the rows that still have live blocks, only when some pixel of the tile is still compositing; the
 // tail behind a saturated tile costs nothing). Each block keeps its state between chunks, and every pixel's
@@ -554,6 +555,10 @@ static void composite_tile(const TileSplat* sorted, const uint32_t* pos, int cou
     const int chunk = lazy ? std::min(cpad, kLazyChunk) : cpad;
     static thread_local std::vector<float> scratch_tls;
     static thread_local std::vector<TileSplat> gathered_tls;
+    static thread_local std::vector<uint32_t> reach_tls;  // per block, a reach mask per W splats of a chunk
+    std::vector<uint32_t>& reach_bits = reach_tls;
+    const int groups = chunk / W;
+    if (reach_bits.size() < size_t(kMaxBlocks) * groups) reach_bits.resize(size_t(kMaxBlocks) * groups);
     std::vector<float>& scratch = scratch_tls;
     if (scratch.size() < size_t(chunk) * (6 + 2 * kTile)) scratch.resize(size_t(chunk) * (6 + 2 * kTile));
     if (pos != nullptr && gathered_tls.size() < size_t(chunk)) gathered_tls.resize(chunk);
@@ -599,24 +604,37 @@ static void composite_tile(const TileSplat* sorted, const uint32_t* pos, int cou
             if (block_live[bi])
                 for (int r = bi / bcols * BR; r < std::min(bi / bcols * BR + BR, rows); ++r) need[r] = true;
         tile_row_spans(splats, real, cn, yb, rows, need, scratch.data(), lo, hi);
+        // Which Gaussians may reach each live block: those whose span on some row of the block's row of blocks
+        // (their union's hull: lowest lo, highest hi) meets the block's columns. A superset of the Gaussians
+        // whose eligibility reaches one of the block's pixels (the others then take alpha 0 there and change
+        // nothing), computed once per row of blocks for all its blocks.
+        for (int br = 0; br * BR < rows; ++br) {
+            const int r0 = br * BR, nr = std::min(BR, rows - r0);
+            if (!need[r0]) continue;
+            for (int c = 0; c < cn; c += W) {
+                F l = V::load(lo + size_t(r0) * cn + c), h = V::load(hi + size_t(r0) * cn + c);
+                for (int r = 1; r < nr; ++r) {
+                    l = V::min(l, V::load(lo + size_t(r0 + r) * cn + c));
+                    h = V::max(h, V::load(hi + size_t(r0 + r) * cn + c));
+                }
+                for (int bc = 0; bc < bcols; ++bc) {
+                    const float x0 = float(xb + bc * BW);
+                    reach_bits[size_t(br * bcols + bc) * groups + c / W] =
+                        V::bits(V::mand(V::le(l, V::set1(x0 + float(BW - 1))), V::ge(h, V::set1(x0))));
+                }
+            }
+        }
         for (int bi = 0; bi < nblocks; ++bi) {
             if (!block_live[bi]) continue;
             const int r0 = bi / bcols * BR, x0 = xb + bi % bcols * BW;
-            const int nr = std::min(BR, rows - r0);
             const F px = V::set1(float(x0) + 0.5f) + col;
             const F yc = V::set1(float(yb + r0) + 0.5f) + row;  // each lane's row centre
-            const F seg_lo = V::set1(float(x0)), seg_hi = V::set1(float(x0 + BW - 1));
             F T = V::load(state[bi][0]), Cr = V::load(state[bi][1]), Cg = V::load(state[bi][2]);
             F Cb = V::load(state[bi][3]), D = V::load(state[bi][4]), L = V::load(state[bi][5]);
             M live = V::gt(V::load(state[bi][6]), zero);
-            const float* lo0 = lo + size_t(r0) * cn;
-            const float* hi0 = hi + size_t(r0) * cn;
+            const uint32_t* block_reach = reach_bits.data() + size_t(bi) * groups;
             for (int c = 0; c < cn && V::any(live); c += W) {
-                M reach_m = V::mand(V::le(V::load(lo0 + c), seg_hi), V::ge(V::load(hi0 + c), seg_lo));
-                for (int r = 1; r < nr; ++r)
-                    reach_m = V::mor(reach_m, V::mand(V::le(V::load(lo0 + size_t(r) * cn + c), seg_hi),
-                                                      V::ge(V::load(hi0 + size_t(r) * cn + c), seg_lo)));
-                unsigned reach = V::bits(reach_m);
+                unsigned reach = block_reach[c / W];
                 while (reach) {
                     const int i = c + __builtin_ctz(reach);
                     const TileSplat& s = splats[i];
