@@ -50,9 +50,9 @@ CLIS = {Path(render_core.__file__).parent / "tools" / "cli.py",
     (lambda: VideoWriter("out.mp4", 33, 32), "size"),
     (lambda: synth_dataset("never-written", frames=1, size=16, seed=0), "frames"),
     (lambda: evaluate(synth_avatar(gaussians=10), "nowhere", batch=0), "batch"),
-], ids=["gaussians", "blendshapes", "mouth", "precision", "warmup", "frames", "output", "device", "batch", "size", "backend",
-        "differentiable", "train-device", "preset", "raster-mode", "image-format", "video-size", "synth-frames",
-        "eval-batch"])
+], ids=["gaussians", "blendshapes", "mouth", "precision", "warmup", "frames", "output", "device", "batch", "size",
+        "backend", "differentiable", "train-device", "preset", "raster-mode", "image-format", "video-size",
+        "synth-frames", "eval-batch"])
 def test_bad_options_raise_option_error_naming_the_field(call, field):
     with pytest.raises(OptionError) as e:
         call()
