@@ -76,7 +76,7 @@ STAGES = ("blend", "lbs", "shade", "deform", "raster", "bin")
 
 
 def _time_frames(renderer: AvatarRenderer, cams: Cameras, frames: int, warmup: int, g: torch.Generator,
-                 label: str | None = None, output: str = "float") -> dict:
+                 label: str | None = None, *, output: str) -> dict:
     """Medians of ``frames`` timed renders after ``warmup``; with ``label`` each render is logged as it ends (for
     slow backends: the reference). ``output``: ``"float"`` (:meth:`AvatarRenderer.render`: RGB, alpha and depth)
     or ``"rgba8"`` (:meth:`AvatarRenderer.render_rgba8`: the 8-bit RGBA a stream encodes)."""
