@@ -638,6 +638,29 @@ def test_thread_count_does_not_change_the_image(simd, avatar):
     assert float(ref.alpha.mean()) > 0.1
 
 
+@pytest.mark.parametrize("simd", SIMD)
+def test_one_frame_sorted_by_halves_is_the_one_thread_order(simd):
+    """One frame of enough splats is depth-sorted in two halves by two threads and merged: ties in depth (here
+    groups of splats at exactly the same depth, overlapping in different colours) keep index order across the
+    halves, so the image is the one thread's bit for bit."""
+    cams = simple_camera(96, 80, 90.0)
+    means, quats, scales, opac, colors = random_scene(12000, 1, seed=9)  # 6000 a half: above the two-thread floor
+    means[..., 2] = 0.6 + (torch.arange(12000) % 4).float() * 0.05  # 4 depths, each in both halves
+    means[..., :2] = torch.rand(1, 12000, 2, generator=torch.Generator().manual_seed(10)) * 0.6 - 0.3
+    scales, opac = scales * 3.0, opac.clamp(min=0.3)
+    args = [means, quats, scales, opac, colors]
+    one = native_raster(args, cams, BG3[:1], simd=simd, threads=1)
+    assert float(one[1].mean()) > 0.5  # the splats cover the image, so any reordering of a tie would show
+    for threads in (2, 3):
+        other = native_raster(args, cams, BG3[:1], simd=simd, threads=threads)
+        assert other[3]["threads"] == threads
+        for a, b in zip(one[:3], other[:3], strict=True):
+            assert torch.equal(a, b)
+    # the order matters: the same splats with the index order reversed within the ties give another image
+    flipped = [t.flip(1) for t in args]
+    assert not torch.equal(native_raster(flipped, cams, BG3[:1], simd=simd, threads=2)[0], one[0])
+
+
 # ------------------------------------------------------------------------------------------------ 8. batches
 
 

@@ -57,69 +57,112 @@ void joint_transforms(const AvatarView& av, const float* rot, float* A) {
     }
 }
 
-// fb.order = indices of the visible splats sorted by depth, ties in index order: a stable LSD radix sort of 11
-// bits a pass over the bits of the positive float depths (whose order is their bits' order) less the smallest:
-// only as many passes as the frame's range of bits needs (two for a head, whose depths span a narrow range).
-void sort_visible_by_depth(const Splat* s, int n, FrameBins& fb) {
+// A run of splats sorted by depth: positions into the frame's splats and their depth keys (the float's bits).
+struct SortedRun {
+    const uint32_t* idx;
+    const uint32_t* key;
+    int m;
+};
+
+// The visible splats among s[i0, i1) sorted by depth, ties in index order: a stable LSD radix sort of 11 bits a
+// pass over the bits of the positive float depths (whose order is their bits' order) less the smallest: only as
+// many passes as the run's range of bits needs (two for a head, whose depths span a narrow range). idx, key and
+// their tmp twins hold i1 - i0 entries, hist 2048; the run ends in one pair or the other.
+SortedRun sort_visible_by_depth(const Splat* s, int i0, int i1, uint32_t* idx, uint32_t* key, uint32_t* tmp_idx,
+                                uint32_t* tmp_key, uint32_t* hist) {
     constexpr int kBuckets = 2048;
-    fb.order.resize(n), fb.keys.resize(n), fb.tmp.resize(n), fb.tmp_keys.resize(n);
     int m = 0;
     uint32_t lo = UINT32_MAX, hi = 0;
-    for (int i = 0; i < n; ++i) {
+    for (int i = i0; i < i1; ++i) {
         if (!(s[i].x0 < s[i].x1)) continue;
-        fb.order[m] = uint32_t(i);
-        uint32_t key;
-        std::memcpy(&key, &s[i].t.depth, 4);
-        fb.keys[m] = key, lo = std::min(lo, key), hi = std::max(hi, key);
+        uint32_t k;
+        std::memcpy(&k, &s[i].t.depth, 4);
+        idx[m] = uint32_t(i), key[m] = k, lo = std::min(lo, k), hi = std::max(hi, k);
         ++m;
     }
-    for (int j = 0; j < m; ++j) fb.keys[j] -= lo;
     const uint32_t range = m > 0 ? hi - lo : 0;
-    fb.hist.resize(kBuckets);
-    uint32_t* h = fb.hist.data();
     for (int sh = 0; sh < 32 && (sh == 0 || (range >> sh) != 0); sh += 11) {
-        std::fill(h, h + kBuckets, 0u);
-        const uint32_t* idx = fb.order.data();
-        const uint32_t* key = fb.keys.data();
-        for (int j = 0; j < m; ++j) ++h[(key[j] >> sh) & (kBuckets - 1)];
+        std::fill(hist, hist + kBuckets, 0u);
+        for (int j = 0; j < m; ++j) ++hist[((key[j] - lo) >> sh) & (kBuckets - 1)];
         uint32_t run = 0;
         for (int b = 0; b < kBuckets; ++b) {
-            const uint32_t c = h[b];
-            h[b] = run;
+            const uint32_t c = hist[b];
+            hist[b] = run;
             run += c;
         }
-        uint32_t* out_idx = fb.tmp.data();
-        uint32_t* out_key = fb.tmp_keys.data();
         for (int j = 0; j < m; ++j) {
-            const uint32_t dst = h[(key[j] >> sh) & (kBuckets - 1)]++;
-            out_idx[dst] = idx[j], out_key[dst] = key[j];
+            const uint32_t dst = hist[((key[j] - lo) >> sh) & (kBuckets - 1)]++;
+            tmp_idx[dst] = idx[j], tmp_key[dst] = key[j];
         }
-        fb.order.swap(fb.tmp);
-        fb.keys.swap(fb.tmp_keys);
+        std::swap(idx, tmp_idx);
+        std::swap(key, tmp_key);
     }
-    fb.order.resize(m);
+    return {idx, key, m};
 }
+
+// Positions d0 <= d < d1 of the merge of runs a and b into out[d0, d1). All of a's splats precede b's in index
+// order, so a wins ties: the merge is the stable sort of both. Merge path: d0's split found by binary search.
+void merge_runs(const SortedRun& a, const SortedRun& b, int d0, int d1, uint32_t* out) {
+    int lo = std::max(0, d0 - b.m), hi = std::min(d0, a.m);
+    while (lo < hi) {  // the most of a's entries among the first d0: a[i - 1] goes before b[d0 - i]
+        const int mid = (lo + hi + 1) / 2;
+        if (a.key[mid - 1] <= b.key[d0 - mid])
+            lo = mid;
+        else
+            hi = mid - 1;
+    }
+    int ia = lo, ib = d0 - lo;
+    for (int d = d0; d < d1; ++d) {
+        const bool take_a = ib == b.m || (ia < a.m && a.key[ia] <= b.key[ib]);
+        out[d] = take_a ? a.idx[ia++] : b.idx[ib++];
+    }
+}
+
+constexpr int kMinSortHalf = 4096;  // splats a half needs before two threads sort (a barrier costs more below)
 
 }  // namespace
 
 // Visible splats of one frame in depth order (ties by index) in fb.sorted, and per tile the positions in it of
 // the splats that reach the tile (fb.binned, ascending: depth order). Tile lists hold 4-byte positions, not the
 // 48-byte records: scattered over a thousand tiles, record copies cost more than gathering them back per tile.
-// The sort runs on the calling thread: a parallel one needs about ten barriers, and a barrier stalls for as long
-// as any other process holds one of the cores.
+// With one thread (a batch's frames bin a frame per thread) the sort runs alone; with more, two threads sort the
+// two halves of the splats and every thread merges its share of the depth order as it gathers the records (the
+// same order, bit for bit, in about half the time: one stream's other core no longer waits through the sort).
 void bin_frame(const Splat* s, int n, int tiles_x, int tiles, FrameBins& fb, int threads) {
-    sort_visible_by_depth(s, n, fb);
-    const int m = int(fb.order.size());
-    fb.sorted.resize(m);
-    fb.rects.resize(m);
+    constexpr int kBuckets = 2048;
+    fb.order.resize(n), fb.keys.resize(n), fb.tmp.resize(n), fb.tmp_keys.resize(n);
+    fb.hist.resize(size_t(2) * kBuckets);
+    SortedRun runs[2] = {};
+    const int halves = threads >= 2 && n >= 2 * kMinSortHalf ? 2 : 1;
+    const auto sort_half = [&](int u) {
+        const int i0 = int(int64_t(n) * u / halves), i1 = int(int64_t(n) * (u + 1) / halves);
+        runs[u] = sort_visible_by_depth(s, i0, i1, fb.order.data() + i0, fb.keys.data() + i0, fb.tmp.data() + i0,
+                                        fb.tmp_keys.data() + i0, fb.hist.data() + size_t(u) * kBuckets);
+    };
+    if (halves == 1) sort_half(0);
+    int visible = runs[0].m;  // two halves: known once both are sorted
+    const uint32_t* order = runs[0].idx;
     fb.counts.assign(size_t(threads) * tiles, 0);
     fb.tile_offsets.assign(tiles + 1, 0);
+    if (halves == 1) fb.sorted.resize(visible), fb.rects.resize(visible);
 #pragma omp parallel num_threads(threads)
     {
         const int t = omp_get_thread_num(), nt = omp_get_num_threads();
-        const int i0 = int(int64_t(m) * t / nt), i1 = int(int64_t(m) * (t + 1) / nt);
+        if (halves == 2) {
+            if (t < 2) sort_half(t);
+#pragma omp barrier
+#pragma omp single
+            {
+                visible = runs[0].m + runs[1].m;
+                fb.merged.resize(visible);
+                order = fb.merged.data();
+                fb.sorted.resize(visible);
+                fb.rects.resize(visible);
+            }
+        }
+        const int i0 = int(int64_t(visible) * t / nt), i1 = int(int64_t(visible) * (t + 1) / nt);
+        if (halves == 2) merge_runs(runs[0], runs[1], i0, i1, fb.merged.data());
         uint32_t* cnt = fb.counts.data() + size_t(t) * tiles;
-        const uint32_t* order = fb.order.data();
         constexpr int kAhead = 64;  // depth order visits the splats at random: prefetch (16 was too few)
         for (int i = i0; i < i1; ++i) {
             if (i + kAhead < i1) __builtin_prefetch(&s[order[i + kAhead]]);

@@ -27,8 +27,9 @@ inline TileRect tile_rect(const Splat& s) {
 // One frame's depth order and tile bins (bin_frame); the vectors are reused from call to call.
 struct FrameBins {
     std::vector<uint32_t> order, tmp, keys, tmp_keys, tile_offsets;
+    std::vector<uint32_t> merged;  // the depth order merged from two sorted halves (several threads)
     std::vector<uint32_t> counts;  // [threads, tiles]
-    std::vector<uint32_t> hist;    // [2048]
+    std::vector<uint32_t> hist;    // [2, 2048]
     std::vector<TileSplat> sorted;  // the visible splats in depth order
     std::vector<TileRect> rects;    // their tile rectangles
     std::vector<uint32_t> binned;   // per tile, positions in sorted
