@@ -14,6 +14,7 @@ constexpr float kTStop = 1e-4f;
 // The 8-bit stop (kEightBitStop): a pixel whose transmittance falls below this after a splat is composited stops
 // (as well as where the exact rule stops it); what lies behind could change its colour by a quarter of a level.
 constexpr float kTStop8 = 1.0f / 1020.0f;
+static_assert(kTStop < kTStop8, "the 8-bit stop lies above the exact one: it covers it (composite_tile)");
 constexpr int kMaxBatch = 64;  // frames blended together per pass (larger batches are split)
 
 // A packed avatar (render_core/packed.py: the layout of a schema-2 bundle; the arrays belong to Python).

@@ -643,24 +643,23 @@ static void composite_tile(const TileSplat* sorted, const uint32_t* pos, int cou
                     const F dy = V::set1(s.my) - yc;
                     const F cbdy = V::set1(s.cb) * dy, hcdy2 = V::set1(s.hc) * dy * dy;
                     const F q = V::fma(dx, V::fma(V::set1(s.ha), dx, cbdy), hcdy2);
-                    // Lanes that skip this Gaussian get alpha 0, so that T (1 - a) = T exactly and nothing is
-                    // added: only the stop mask is needed to update T and the colour (fewer mask operations).
-                    const F a_raw = V::min(amax, vexp2<V>(V::set1(s.log2_opacity) - q));
-                    const M ok = V::ge_and(V::ge_and(live, q, zero), a_raw, amin);
-                    const F a = V::zero_unless(ok, a_raw);
-                    const F nt = T * (one - a);
-                    const M stop = V::le_and(ok, nt, tstop);
-                    const F w = V::select(stop, zero, a * T);
+                    // Lanes that skip this Gaussian (not ok) keep T: T (1 - 0) = T exactly. Kept: composited,
+                    // its T above the exact rule's stop; the others add nothing (w = 0) and keep their T.
+                    const F a = V::min(amax, vexp2<V>(V::set1(s.log2_opacity) - q));
+                    const M ok = V::ge_and(V::ge_and(live, q, zero), a, amin);
+                    const F nt = T * V::sub_if(ok, one, a);
+                    const M kept = V::gt_and(ok, nt, tstop);
+                    const F w = V::mul_if(kept, a, T);
                     Cr = V::fma(w, V::set1(s.r), Cr);
                     Cg = V::fma(w, V::set1(s.g), Cg);
                     Cb = V::fma(w, V::set1(s.b), Cb);
                     if constexpr (!Stop8) D = V::fma(w, V::set1(s.depth), D);  // 8-bit output has no depth
-                    T = V::select(stop, T, nt);
-                    if constexpr (Train) L = V::select(V::mandnot(stop, ok), V::set1(float(c0 + i + 1)), L);
-                    if constexpr (Stop8)  // the exact stop, or this splat composited and T below kTStop8
-                        live = V::mandnot(V::mor(stop, V::le_and(ok, nt, tstop8)), live);
-                    else
-                        live = V::mandnot(stop, live);
+                    T = V::select(kept, nt, T);
+                    if constexpr (Train) L = V::select(kept, V::set1(float(c0 + i + 1)), L);
+                    if constexpr (Stop8)  // this splat composited and T below kTStop8, or the exact stop (T < kTStop)
+                        live = V::mandnot(V::le_and(ok, nt, tstop8), live);
+                    else  // the exact stop: ok, not kept
+                        live = V::mandnot(V::mandnot(kept, ok), live);
                 }
             }
             V::store(state[bi][0], T), V::store(state[bi][1], Cr), V::store(state[bi][2], Cg);

@@ -79,7 +79,10 @@ struct Scalar {
     static M mandnot(M a, M b) { return !a && b; }  // (not a) and b
     static M ge_and(M m, F a, F b) { return m && a >= b; }  // m and (a >= b)
     static M le_and(M m, F a, F b) { return m && a <= b; }
+    static M gt_and(M m, F a, F b) { return m && a > b; }
     static F zero_unless(M m, F a) { return m ? a : 0.0f; }
+    static F mul_if(M m, F a, F b) { return m ? a * b : 0.0f; }  // a b where m, else 0
+    static F sub_if(M m, F a, F b) { return m ? a - b : a; }     // a - b where m, else a
     static bool any(M m) { return m; }
     static unsigned bits(M m) { return m ? 1u : 0u; }
     static F select(M m, F a, F b) { return m ? a : b; }
@@ -131,7 +134,10 @@ struct Avx2 {
     static M mandnot(M a, M b) { return {_mm256_andnot_ps(a.v, b.v)}; }
     static M ge_and(M m, F a, F b) { return {_mm256_and_ps(m.v, _mm256_cmp_ps(a.v, b.v, _CMP_GE_OQ))}; }
     static M le_and(M m, F a, F b) { return {_mm256_and_ps(m.v, _mm256_cmp_ps(a.v, b.v, _CMP_LE_OQ))}; }
+    static M gt_and(M m, F a, F b) { return {_mm256_and_ps(m.v, _mm256_cmp_ps(a.v, b.v, _CMP_GT_OQ))}; }
     static F zero_unless(M m, F a) { return _mm256_and_ps(m.v, a.v); }
+    static F mul_if(M m, F a, F b) { return _mm256_and_ps(m.v, _mm256_mul_ps(a.v, b.v)); }
+    static F sub_if(M m, F a, F b) { return _mm256_sub_ps(a.v, _mm256_and_ps(m.v, b.v)); }
     static bool any(M m) { return _mm256_movemask_ps(m.v) != 0; }
     static unsigned bits(M m) { return unsigned(_mm256_movemask_ps(m.v)); }
     static F select(M m, F a, F b) { return _mm256_blendv_ps(b.v, a.v, m.v); }
@@ -203,7 +209,10 @@ struct Avx512 {
     // Compares under a write mask: the AND comes free with the compare (no separate mask instruction).
     static M ge_and(M m, F a, F b) { return {_mm512_mask_cmp_ps_mask(m.k, a.v, b.v, _CMP_GE_OQ)}; }
     static M le_and(M m, F a, F b) { return {_mm512_mask_cmp_ps_mask(m.k, a.v, b.v, _CMP_LE_OQ)}; }
+    static M gt_and(M m, F a, F b) { return {_mm512_mask_cmp_ps_mask(m.k, a.v, b.v, _CMP_GT_OQ)}; }
     static F zero_unless(M m, F a) { return _mm512_maskz_mov_ps(m.k, a.v); }
+    static F mul_if(M m, F a, F b) { return _mm512_maskz_mul_ps(m.k, a.v, b.v); }     // one instruction
+    static F sub_if(M m, F a, F b) { return _mm512_mask_sub_ps(a.v, m.k, a.v, b.v); }  // one instruction
     static bool any(M m) { return m.k != 0; }
     static unsigned bits(M m) { return unsigned(m.k); }
     static F select(M m, F a, F b) { return _mm512_mask_blend_ps(m.k, b.v, a.v); }
