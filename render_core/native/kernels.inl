@@ -150,11 +150,81 @@ static const float* weighted_scales(const AvatarView& av, const float* psi) {
     return ws.data();
 }
 
+// A block of nl <= W Gaussians' blended rows, tile[lane][frame][DP] (geometry in columns 0..10, colour from 16),
+// written lane-interleaved ([value][lane], the 11 + sh values) for each of B frames, as deform_project loads them:
+// frame b's block at out + b * frame_stride. With AVX-512 by 16 x 16 transposes (64 shuffles for 256 values, where
+// one load and one scalar store each took about half of the blend's time; AVX2: 8 x 8, 24 shuffles for 64); lanes
+// past nl are left as they were.
+static inline void write_block(const float* tile, int B, int DP, int sh, int nl, float* out, size_t frame_stride) {
+#if defined(BS_ISA_AVX512)
+    const __mmask16 lanes = __mmask16((1u << nl) - 1u);
+    for (int b = 0; b < B; ++b) {
+        float* o = out + size_t(b) * frame_stride;
+        for (int c0 = 0; c0 < DP && (c0 == 0 || c0 - 16 < sh); c0 += 16) {
+            __m512 r[16], u[16];
+            for (int i = 0; i < 16; ++i) r[i] = _mm512_load_ps(tile + (size_t(i) * B + b) * DP + c0);
+            for (int i = 0; i < 16; i += 2)
+                u[i] = _mm512_unpacklo_ps(r[i], r[i + 1]), u[i + 1] = _mm512_unpackhi_ps(r[i], r[i + 1]);
+            for (int i = 0; i < 16; i += 4)  // r[i + k]'s 128-bit lane j: rows i..i+3 of column 4j + k
+                for (int k = 0; k < 2; ++k) {
+                    const __m512d a = _mm512_castps_pd(u[i + k]), c = _mm512_castps_pd(u[i + k + 2]);
+                    r[i + 2 * k] = _mm512_castpd_ps(_mm512_unpacklo_pd(a, c));
+                    r[i + 2 * k + 1] = _mm512_castpd_ps(_mm512_unpackhi_pd(a, c));
+                }
+            __m512 col[16];
+            for (int k = 0; k < 4; ++k) {
+                const __m512 v0 = _mm512_shuffle_f32x4(r[k], r[4 + k], 0x44), v1 = _mm512_shuffle_f32x4(r[k], r[4 + k], 0xEE);
+                const __m512 w0 = _mm512_shuffle_f32x4(r[8 + k], r[12 + k], 0x44);
+                const __m512 w1 = _mm512_shuffle_f32x4(r[8 + k], r[12 + k], 0xEE);
+                col[k] = _mm512_shuffle_f32x4(v0, w0, 0x88), col[4 + k] = _mm512_shuffle_f32x4(v0, w0, 0xDD);
+                col[8 + k] = _mm512_shuffle_f32x4(v1, w1, 0x88), col[12 + k] = _mm512_shuffle_f32x4(v1, w1, 0xDD);
+            }
+            const int first = c0 == 0 ? 0 : 11 + c0 - 16, count = c0 == 0 ? 11 : std::min(16, sh - (c0 - 16));
+            for (int j = 0; j < count; ++j) _mm512_mask_storeu_ps(o + size_t(first + j) * W, lanes, col[j]);
+        }
+    }
+#elif defined(BS_ISA_AVX2)
+    alignas(32) int32_t lane_on[8];
+    for (int l = 0; l < 8; ++l) lane_on[l] = l < nl ? -1 : 0;
+    const __m256i lanes = _mm256_load_si256(reinterpret_cast<const __m256i*>(lane_on));
+    for (int b = 0; b < B; ++b) {
+        float* o = out + size_t(b) * frame_stride;
+        for (int c0 = 0; c0 < DP && (c0 < 16 || c0 - 16 < sh); c0 += 8) {
+            __m256 r[8], t[8], col[8];
+            for (int i = 0; i < 8; ++i) r[i] = _mm256_load_ps(tile + (size_t(i) * B + b) * DP + c0);
+            for (int i = 0; i < 8; i += 2)
+                t[i] = _mm256_unpacklo_ps(r[i], r[i + 1]), t[i + 1] = _mm256_unpackhi_ps(r[i], r[i + 1]);
+            for (int h = 0; h < 8; h += 4) {  // r[h + k]'s 128-bit lane j: rows h..h+3 of column 4j + k
+                r[h] = _mm256_shuffle_ps(t[h], t[h + 2], 0x44), r[h + 1] = _mm256_shuffle_ps(t[h], t[h + 2], 0xEE);
+                r[h + 2] = _mm256_shuffle_ps(t[h + 1], t[h + 3], 0x44);
+                r[h + 3] = _mm256_shuffle_ps(t[h + 1], t[h + 3], 0xEE);
+            }
+            for (int k = 0; k < 4; ++k)
+                col[k] = _mm256_permute2f128_ps(r[k], r[4 + k], 0x20), col[4 + k] = _mm256_permute2f128_ps(r[k], r[4 + k], 0x31);
+            const int first = c0 < 16 ? c0 : 11 + c0 - 16;
+            const int count = c0 < 16 ? std::min(8, 11 - c0) : std::min(8, sh - (c0 - 16));
+            for (int j = 0; j < count; ++j) _mm256_maskstore_ps(o + size_t(first + j) * W, lanes, col[j]);
+        }
+    }
+#else
+    for (int l = 0; l < nl; ++l)
+        for (int b = 0; b < B; ++b) {
+            float* o = out + size_t(b) * frame_stride + l;
+            const float* a = tile + (size_t(l) * B + b) * DP;
+            for (int d = 0; d < 11; ++d) o[d * W] = a[d];
+            for (int d = 0; d < sh; ++d) o[(11 + d) * W] = a[16 + d];
+        }
+#endif
+}
+
 template <class T, class TP, int DP>
 static void blend_t(const AvatarView& av, const float* psi, const float* pose_feat, const float* eyelids, int B,
                     float* out, int out_stride, int n0, int n1) {
     constexpr int kGeo = 16;  // geometry columns 0..15 (11 used), then colour columns
-    alignas(64) float acc[kMaxBatch * DP];
+    static thread_local std::vector<float> tile_tls;  // [W lanes][B frames][DP]: a block's rows, 64-byte aligned
+    std::vector<float>& tile_buf = tile_tls;
+    if (tile_buf.size() < size_t(W) * B * DP + 16) tile_buf.resize(size_t(W) * B * DP + 16);
+    float* const tile = reinterpret_cast<float*>((reinterpret_cast<uintptr_t>(tile_buf.data()) + 63) & ~uintptr_t(63));
     const TP* pc = static_cast<const TP*>(av.pc);
     const int sh = 3 * av.C;
     const float* ws = nullptr;
@@ -166,6 +236,8 @@ static void blend_t(const AvatarView& av, const float* psi, const float* pose_fe
         for (int p = 0; p < av.P; ++p) any_pose[b] |= pose_feat[b * av.Ppad + p] != 0.0f;
     }
     for (int n = n0; n < n1; ++n) {
+        const int i = n - n0, lane = i % W;
+        float* const acc = tile + size_t(lane) * B * DP;  // frame b's row at acc + b DP
         const float* base = av.base + size_t(n) * DP;
         for (int b = 0; b < B; ++b) std::memcpy(acc + b * DP, base, sizeof(float) * DP);
         if (n < av.n_face) {
@@ -192,15 +264,10 @@ static void blend_t(const AvatarView& av, const float* psi, const float* pose_fe
                 for (int c = 0; c < 3; ++c) acc[b * DP + c] += e0 * e[c] + e1 * e[3 + c];
             }
         }
-        for (int b = 0; b < B; ++b) {
-            // Lane-interleaved blocks of W Gaussians ([block][d][lane], d over the 11 + 3C used values), what
-            // deform_project loads as vectors.
-            const int i = n - n0, block = i / W, lane = i % W;
-            float* o = out + size_t(b) * out_stride * DP + (size_t(block) * DP) * W + lane;
-            const float* a = acc + b * DP;
-            for (int d = 0; d < 11; ++d) o[d * W] = a[d];
-            for (int d = 0; d < sh; ++d) o[(11 + d) * W] = a[kGeo + d];
-        }
+        // Lane-interleaved blocks of W Gaussians ([block][d][lane], d over the 11 + 3C used values), what
+        // deform_project loads as vectors: written a block at a time.
+        if (lane == W - 1 || n == n1 - 1)
+            write_block(tile, B, DP, sh, lane + 1, out + size_t(i / W) * DP * W, size_t(out_stride) * DP);
     }
 }
 
