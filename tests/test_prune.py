@@ -27,6 +27,7 @@ from render_core.train.prune import (
     contribution,
     footprints,
     prune_lowest,
+    prune_mouth_lowest,
     step_fraction,
 )
 from render_core.train.trainer import make_optimizer, raster_step
@@ -181,6 +182,21 @@ def test_efficiency_scores_the_weight_per_pixel_paid_for(head, data):
         contribution(model, frames, cams, raster_step("cpu"), by="size")
 
 
+def test_peak_scores_the_largest_weight_in_any_one_frame(head, data):
+    model, frames, cams = three_frames(head, data)
+    summed = contribution(model, frames, cams, raster_step("cpu"))
+    got = contribution(model, frames, cams, raster_step("cpu"), by="peak")
+    each = torch.stack([contribution(model, Frame(frames.expression[j:j + 1], frames.joint_rotations[j:j + 1],
+                                                  None if frames.eyelids is None else frames.eyelids[j:j + 1]),
+                                     cams.index(j), raster_step("cpu")) for j in range(3)])
+    torch.testing.assert_close(each.sum(0), summed)  # the frames scored one at a time
+    torch.testing.assert_close(got, each.amax(0))
+    assert float((got - summed).abs().max()) > 0.1 * float(summed.max())  # not the sum
+    # Gaussians that matter in one frame rank above ones with a larger sum spread over the frames: the lowest 100
+    # by each score differ.
+    assert not torch.equal(torch.argsort(got)[:100].sort().values, torch.argsort(summed)[:100].sort().values)
+
+
 def test_prune_lowest_keeps_the_survivors_state(head):
     av = init_avatar(head, gaussians=200, mouth=20, seed=4)
     model = TrainableAvatar.from_facemodel(av, head)
@@ -214,11 +230,56 @@ def test_prune_lowest_keeps_the_survivors_state(head):
     torch.testing.assert_close(opt.state[model.means]["exp_avg"], moments[keep])
     assert torch.equal(strategy.grad_accum, accum[keep]) and len(strategy.max_radii) == 50
     assert len(model.hat_n) == int((model.weights > 0).sum()) and int(model.hat_n.max()) < 50
-    assert model.mouth_means.shape[0] == 20  # the mouth interior is not pruned
+    assert model.mouth_means.shape[0] == 20  # prune_lowest leaves the mouth interior alone
     assert {grp["params"][0] for grp in opt.param_groups} == set(model.parameters())
     for p in model.parameters():
         p.grad = torch.ones_like(p)
     opt.step()  # the optimizer runs on the new parameters
+
+
+def test_prune_mouth_lowest_keeps_the_survivors_state(head):
+    av = init_avatar(head, gaussians=200, mouth=20, seed=4)
+    model = TrainableAvatar.from_facemodel(av, head)
+    opt = make_optimizer(model, TOY)
+    g = torch.Generator().manual_seed(1)
+    for p in model.parameters():
+        p.grad = torch.randn(p.shape, generator=g)
+    opt.step()
+    before = {k: v.detach().clone() for k, v in model.named_parameters() if k.startswith("mouth_")}
+    moments = opt.state[model.mouth_means]["exp_avg"].clone()
+    group = model.mouth_group.clone()
+    score = torch.rand(20, generator=g, dtype=torch.float64)
+    counts = prune_mouth_lowest(model, opt, score, 12)
+    keep = torch.argsort(score, descending=True)[:8].sort().values
+    assert counts == {"mouth_before": 20, "mouth_after": 8} and model.mouth_means.shape[0] == 8
+    for key, value in before.items():
+        torch.testing.assert_close(getattr(model, key), value[keep])
+    torch.testing.assert_close(opt.state[model.mouth_means]["exp_avg"], moments[keep])
+    assert torch.equal(model.mouth_group, group[keep]) and model.num_gaussians == 200  # the face untouched
+    assert model.to_avatar().num_mouth == 8
+    assert {grp["params"][0] for grp in opt.param_groups} == set(model.parameters())
+    assert prune_mouth_lowest(model, opt, score[:8], 50)["mouth_after"] == 1  # one always stays
+
+
+def test_pruning_the_mouth_interior_in_training_and_across_a_resume(head, data, tmp_path):
+    cfg = TOY.with_pruning(0.5, (3, 5)).with_(prune_by="peak", prune_mouth=True)
+    straight = Trainer(data, tmp_path / "a", cfg, iterations=7, seed=2, facemodel=head)
+    events = [straight.step() for _ in range(7)]
+    assert events[2].pruned["mouth_before"] == 40 and events[2].pruned["mouth_after"] == 28
+    assert events[4].pruned["mouth_after"] == 20 and straight.summary()["mouth"] == 20
+    assert [e.gaussians for e in events][-1] == 200
+    first = Trainer(data, tmp_path / "b", cfg, iterations=7, seed=2, facemodel=head)
+    for _ in range(4):
+        first.step()
+    first.checkpoint()
+    second = Trainer(data, tmp_path / "b", TOY, iterations=7, facemodel=head)
+    assert second.resume() and int(second.model.mouth_means.shape[0]) == 28
+    while second.iteration < second.total:
+        second.step()
+    a, b = straight.model.state()["tensors"], second.model.state()["tensors"]
+    for key in a:
+        assert torch.equal(a[key], b[key]), key
+    assert not ContributionPruner.from_preset(TOY.with_pruning(0.5).with_(prune_mouth=False)).mouth  # the switch
 
 
 def test_the_schedule_and_its_switches():
@@ -241,8 +302,11 @@ def test_the_schedule_and_its_switches():
     assert parser.parse_args(["train", "d", "--out", "x.bsplat", "--prune", "on"]).prune == 0.4
     assert parser.parse_args(["train", "d", "--out", "x.bsplat"]).prune == 0.0
     assert parser.parse_args(["train", "d", "--out", "x.bsplat"]).prune_by is None  # given or not: told apart
-    assert tiny.prune_by == "contribution"  # what --prune uses without --prune-by
+    assert tiny.prune_by == "peak" and tiny.prune_mouth  # what --prune uses without --prune-by
     assert ContributionPruner.from_preset(tiny.with_(prune_by="efficiency")).by == "efficiency"
+    assert ContributionPruner.from_preset(tiny.with_(prune_by="peak")).by == "peak"
+    assert parser.parse_args(["train", "d", "--out", "x.bsplat", "--prune", "on", "--prune-by", "peak"]).prune_by \
+        == "peak"
     with pytest.raises(ValueError, match="prune_by"):  # refused when the trainer starts, not at the first pruning
         ContributionPruner.from_preset(tiny.with_pruning(0.5).with_(prune_by="size"))
     with pytest.raises(SystemExit):

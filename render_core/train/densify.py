@@ -303,7 +303,7 @@ def reindex(model: TrainableAvatar, opt: torch.optim.Optimizer, src: Tensor, fre
     for name in plan:
         if name in params:
             value = updates[name] if name in updates else apply(name, params[name].detach())
-            _swap(model, opt, name, value, lambda v, name=name: apply(name, v, moment=True))
+            swap_parameter(model, opt, name, value, lambda v, name=name: apply(name, v, moment=True))
         else:
             model.register_buffer(name, apply(name, getattr(model, name)))
     model.register_buffer("init_n", init_child)
@@ -314,7 +314,8 @@ def reindex(model: TrainableAvatar, opt: torch.optim.Optimizer, src: Tensor, fre
         model.eyelid_offsets = model.eyelid_offsets.index_select(1, src)
 
 
-def _swap(model: TrainableAvatar, opt: torch.optim.Optimizer, name: str, value: Tensor, moments) -> None:
+def swap_parameter(model: TrainableAvatar, opt: torch.optim.Optimizer, name: str, value: Tensor,
+                   moments) -> None:
     """Replace parameter ``name`` by ``value`` in the model and the optimizer; Adam's moments go through
     ``moments`` (old moment -> new moment), other state (the step) is kept."""
     old = getattr(model, name)
@@ -360,6 +361,6 @@ def assign_surface(model: TrainableAvatar, opt: torch.optim.Optimizer, index: Te
         for prop in PROPS:
             hat = model.hat(prop)
             if hat is not None and model.weighted(prop):
-                _swap(model, opt, "hat_" + prop, carry(hat.detach()), carry)
+                swap_parameter(model, opt, "hat_" + prop, carry(hat.detach()), carry)
         model.hat_k, model.hat_n = new_k, new_n
         model.hat_w = model.weights[new_k, new_n].clone()

@@ -15,12 +15,17 @@ random draw, so a resumed run scores the same frames) and removes the lowest-sco
 :func:`.densify.reindex` (survivors keep their Adam moments, their blendshape pairs and LBS weights; the
 densification statistics follow them); training then continues and fine-tunes the rest. ``prune_fraction`` is
 the fraction of face Gaussians removed over the whole schedule: each of the m pruning iterations removes
-1 - (1 - f)^(1/m) of those present. The mouth interior is never pruned. Off when ``prune_at`` is empty or
-``prune_fraction`` is 0.
+1 - (1 - f)^(1/m) of those present. With ``prune_mouth`` (the default) the mouth interior loses the same fraction,
+its Gaussians ranked among themselves (:func:`prune_mouth_lowest`; their scores lie far below the face's, so one
+ranking would take nearly all of them). Off when ``prune_at`` is empty or ``prune_fraction`` is 0.
 
 ``prune_by`` (``train --prune-by``) chooses the score: the contribution itself, or ``"efficiency"``: the
 contribution per pixel the Gaussian costs to render (:func:`footprints`, its alpha >= 1/255 ellipse, plus
-:data:`FIXED_PIXELS` a frame), so that big faint Gaussians go before small bright ones.
+:data:`FIXED_PIXELS` a frame), so that big faint Gaussians go before small bright ones; or ``"peak"``: the largest
+of its per-frame weights instead of their sum, so that a Gaussian that one expression needs (teeth behind parted
+lips, a crease of a smile) stays beside the ones every frame shows a little of: a blendshape avatar is judged on
+expressions it was not trained on, and a sum over the sampled frames ranks such Gaussians by how often their
+expression happened to be sampled.
 """
 
 from __future__ import annotations
@@ -34,12 +39,12 @@ from ..camera import Cameras
 from ..deform import Frame, Splats, skin
 from ..evaluation.align import moved_splats
 from ..raster.reference import ALPHA_MIN, EXTENT_MAX, project
-from .densify import DensifyStrategy, reindex
+from .densify import DensifyStrategy, reindex, swap_parameter
 from .model import TrainableAvatar
 from .poses import corrected
 from .presets import Preset
 
-PRUNE_BY = ("contribution", "efficiency")
+PRUNE_BY = ("contribution", "efficiency", "peak")
 FIXED_PIXELS = 32.0  # what a Gaussian costs a frame beyond its pixels (blend, skinning, projection, binning), in pixels
 
 
@@ -76,14 +81,17 @@ def footprints(splats: Splats, cameras: Cameras, mode: str = "classic") -> Tenso
 
 
 def contribution(model: TrainableAvatar, frames: Frame, cameras: Cameras, rasterize: raster.Differentiable, *,
-                 motions: Tensor | None = None, threads: int = 0, by: str = "contribution") -> Tensor:
+                 motions: Tensor | None = None, threads: int = 0, by: str = "contribution",
+                 mouth: bool = False) -> Tensor:
     """Per face Gaussian [N] (float64, on the model's device): :func:`blend_weights` summed over the B frames
     (``frames``, ``cameras``: one camera per frame), one frame at a time. ``motions``: [B, 6 (+ K)] rigid
     corrections (w, u) of the frames' heads and their expression corrections (:mod:`.poses`, as training renders
     them), or None. ``by="efficiency"``: that sum divided by what the Gaussian costs to render over the frames,
-    :data:`FIXED_PIXELS` a frame plus its :func:`footprints` (the blending weight per pixel paid for)."""
+    :data:`FIXED_PIXELS` a frame plus its :func:`footprints` (the blending weight per pixel paid for);
+    ``by="peak"``: the largest of the B weights instead of their sum. ``mouth``: [N + M], the M mouth-interior
+    Gaussians' scores after the face's."""
     check_prune_by(by)
-    n = model.num_gaussians
+    n = model.num_gaussians + (int(model.mouth_means.shape[0]) if mouth else 0)
     score = torch.zeros(n, dtype=torch.float64, device=model.means.device)
     cost = torch.full_like(score, FIXED_PIXELS * len(frames))
     with torch.no_grad():
@@ -98,7 +106,10 @@ def contribution(model: TrainableAvatar, frames: Frame, cameras: Cameras, raster
             if motion is not None:
                 splats = moved_splats(splats, cameras.index(j), *motion)
         w = blend_weights(splats, cameras.index(j), rasterize, avatar.raster_mode, threads=threads)
-        score += w[0, :n].to(score.dtype)
+        if by == "peak":
+            torch.maximum(score, w[0, :n].to(score.dtype), out=score)
+        else:
+            score += w[0, :n].to(score.dtype)
         if by == "efficiency":
             cost += footprints(splats, cameras.index(j), avatar.raster_mode)[0, :n].to(cost.dtype)
     return score / cost if by == "efficiency" else score
@@ -125,6 +136,22 @@ def prune_lowest(model: TrainableAvatar, opt: torch.optim.Optimizer, score: Tens
             "mass_kept": round(kept / total, 6) if total > 0 else 1.0, "unseen": int((score <= 0).sum())}
 
 
+def prune_mouth_lowest(model: TrainableAvatar, opt: torch.optim.Optimizer, score: Tensor, count: int) -> dict:
+    """Remove the ``count`` mouth-interior Gaussians with the lowest ``score`` [M] (ties: the later index goes
+    first; at least one stays), keeping the order and Adam moments of the rest and their jaw or upper-head group.
+    Returns the counts: mouth_before, mouth_after."""
+    m = int(model.mouth_means.shape[0])
+    count = min(max(int(count), 0), m - 1)
+    if count:
+        with torch.no_grad():
+            keep = torch.argsort(score, descending=True, stable=True)[: m - count].sort().values
+            for name, value in list(model.named_parameters()):
+                if name.startswith("mouth_"):
+                    swap_parameter(model, opt, name, value.detach()[keep], lambda v: v[keep])
+            model.register_buffer("mouth_group", model.mouth_group[keep])
+    return {"mouth_before": m, "mouth_after": int(model.mouth_means.shape[0])}
+
+
 def step_fraction(fraction: float, steps: int) -> float:
     """What each of ``steps`` prunings removes so that ``fraction`` of the Gaussians go in all."""
     if steps <= 0 or fraction <= 0:
@@ -136,16 +163,17 @@ class ContributionPruner:
     """The preset's contribution-pruning schedule (:meth:`from_preset`); :meth:`due` says when,
     :meth:`prune` does it. Holds no state of its own: the schedule is the preset's, the sample fixed."""
 
-    def __init__(self, at: tuple[int, ...] = (), fraction: float = 0.0, frames: int = 24, by: str = "contribution"):
+    def __init__(self, at: tuple[int, ...] = (), fraction: float = 0.0, frames: int = 24, by: str = "contribution",
+                 mouth: bool = False):
         check_prune_by(by)  # at the trainer's start, not at the first pruning
-        self.by = by
+        self.by, self.mouth = by, bool(mouth)
         self.at = tuple(sorted({int(i) for i in at})) if fraction > 0 else ()
         self.fraction, self.frames = float(fraction), max(int(frames), 1)
         self.each = step_fraction(self.fraction, len(self.at))
 
     @classmethod
     def from_preset(cls, preset: Preset) -> ContributionPruner:
-        return cls(preset.prune_at, preset.prune_fraction, preset.prune_frames, preset.prune_by)
+        return cls(preset.prune_at, preset.prune_fraction, preset.prune_frames, preset.prune_by, preset.prune_mouth)
 
     @property
     def enabled(self) -> bool:
@@ -169,6 +197,11 @@ class ContributionPruner:
                     None if frames.eyelids is None else frames.eyelids[pick])
         cams = Cameras(cameras.K[pick], cameras.R[pick], cameras.t[pick], cameras.width, cameras.height)
         moved = None if motions is None else motions[pick]
-        score = contribution(model, sub, cams, rasterize, motions=moved, threads=threads, by=self.by)
-        count = int(round(self.each * model.num_gaussians))
-        return {**prune_lowest(model, opt, score, count, strategy), "frames": len(pick)}
+        score = contribution(model, sub, cams, rasterize, motions=moved, threads=threads, by=self.by,
+                             mouth=self.mouth)
+        n = model.num_gaussians
+        counts = {}
+        if self.mouth:  # the mouth interior by the same fraction, ranked among itself
+            counts = prune_mouth_lowest(model, opt, score[n:], int(round(self.each * (len(score) - n))))
+        counts = {**prune_lowest(model, opt, score[:n], int(round(self.each * n)), strategy), **counts}
+        return {**counts, "frames": len(pick)}
