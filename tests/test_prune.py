@@ -197,7 +197,9 @@ def test_peak_scores_the_largest_weight_in_any_one_frame(head, data):
     assert not torch.equal(torch.argsort(got)[:100].sort().values, torch.argsort(summed)[:100].sort().values)
 
 
-def test_prune_lowest_keeps_the_survivors_state(head):
+def stepped_model(head):
+    """A 200 + 20 Gaussian model, its optimizer after one step on random gradients (Adam moments set), and the
+    generator that made them."""
     av = init_avatar(head, gaussians=200, mouth=20, seed=4)
     model = TrainableAvatar.from_facemodel(av, head)
     opt = make_optimizer(model, TOY)
@@ -205,6 +207,11 @@ def test_prune_lowest_keeps_the_survivors_state(head):
     for p in model.parameters():
         p.grad = torch.randn(p.shape, generator=g)
     opt.step()
+    return model, opt, g
+
+
+def test_prune_lowest_keeps_the_survivors_state(head):
+    model, opt, g = stepped_model(head)
     strategy = DensifyStrategy(200, 0.1)
     strategy.grad_accum = torch.rand(200, generator=g)
     psi = torch.rand(1, model.num_expressions, generator=g)
@@ -238,13 +245,7 @@ def test_prune_lowest_keeps_the_survivors_state(head):
 
 
 def test_prune_mouth_lowest_keeps_the_survivors_state(head):
-    av = init_avatar(head, gaussians=200, mouth=20, seed=4)
-    model = TrainableAvatar.from_facemodel(av, head)
-    opt = make_optimizer(model, TOY)
-    g = torch.Generator().manual_seed(1)
-    for p in model.parameters():
-        p.grad = torch.randn(p.shape, generator=g)
-    opt.step()
+    model, opt, g = stepped_model(head)
     before = {k: v.detach().clone() for k, v in model.named_parameters() if k.startswith("mouth_")}
     moments = opt.state[model.mouth_means]["exp_avg"].clone()
     group = model.mouth_group.clone()
