@@ -181,6 +181,21 @@ def cmd_bench_render(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_bench_bundles(args: argparse.Namespace) -> int:
+    from .bench_bundles import bench_bundles
+
+    report = bench_bundles(args.bundles, args.data, size=args.size, streams=args.streams, rounds=args.rounds,
+                           block=args.block, warmup=args.warmup, split=args.split, backend=args.backend,
+                           threads=args.threads)
+    if args.json:
+        _emit(report)
+    else:
+        for b in report["bundles"]:
+            print(f"{b['bundle']}: {b['gaussians']} + {b['mouth']} gaussians, {b['ms']} ms a call "
+                  f"({', '.join(f'{k} {v}' for k, v in b['stages_ms'].items())}), {b['speedup']}x")
+    return 0
+
+
 def cmd_bench_raster_backward(args: argparse.Namespace) -> int:
     from .bench import bench_raster_backward
 
@@ -879,7 +894,7 @@ def _add_render_command(sub: argparse._SubParsersAction) -> None:
 
 
 def _add_bench_commands(sub: argparse._SubParsersAction) -> argparse._SubParsersAction:
-    """`bench render | raster-backward | codecs | adapter`; returns the group's subparsers."""
+    """`bench render | bundles | raster-backward | codecs | adapter`; returns the group's subparsers."""
     from ..raster import KNOWN_BACKENDS, default_backend
 
     bench = sub.add_parser("bench", help="benchmarks (JSON with --json)")
@@ -918,6 +933,20 @@ def _add_bench_commands(sub: argparse._SubParsersAction) -> argparse._SubParsers
                         "RGB, alpha and depth of training and `render`")
     b.add_argument("--json", action="store_true")
     b.set_defaults(fn=cmd_bench_render)
+    b = bsub.add_parser("bundles", help="render speed of bundles side by side on a dataset's own frames (a "
+                                        "pruned avatar against the unpruned): speed-ups against the first")
+    b.add_argument("bundles", type=Path, nargs="+", help="the bundles; the first is the reference")
+    b.add_argument("--data", type=Path, required=True, help="the dataset whose frames they render")
+    b.add_argument("--split", choices=("test", "train", "all"), default="test")
+    b.add_argument("--size", type=int, default=512, help="image width (the dataset's cameras scaled to it)")
+    b.add_argument("--streams", type=int, default=1, help="consecutive frames batched per call")
+    b.add_argument("--rounds", type=int, default=12, help="rounds; each renders a block with every bundle")
+    b.add_argument("--block", type=int, default=20, help="calls per bundle in a round")
+    b.add_argument("--warmup", type=int, default=5, help="untimed calls per bundle first")
+    b.add_argument("--threads", type=int, default=0, help="native threads (0: all)")
+    b.add_argument("--backend", choices=KNOWN_BACKENDS, default=default_backend())
+    b.add_argument("--json", action="store_true")
+    b.set_defaults(fn=cmd_bench_bundles)
     b = bsub.add_parser("raster-backward", help="forward + backward of the differentiable rasterizer (training's "
                                                 "step): native on cpu, gsplat on cuda")
     b.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
