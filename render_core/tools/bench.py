@@ -269,8 +269,7 @@ def bench_render(
         "frames": frames,
         "warmup": warmup,
         "threads": timed["last_timings"].get("threads", torch.get_num_threads()),
-        "machine": {"cpu": _cpu_name(), "cores": _cores(), "python": platform.python_version(),
-                    "torch": torch.__version__},
+        "machine": {**machine(), "torch": torch.__version__},
     }
     if renderer.native is not None:
         stats = renderer.stats
@@ -412,8 +411,7 @@ def bench_raster_backward(gaussians: int = 10_000, size: int = 256, frames: int 
             report["reference"] = ref
             report["speedup"] = {k: round(ref[f"{k}_ms"] / max(nat[f"{k}_ms"], 1e-9), 1)
                                  for k in ("forward", "backward", "total")}
-    report["machine"] = {"cpu": _cpu_name(), "cores": _cores(), "python": platform.python_version(),
-                         "torch": torch.__version__, "torch_threads": torch.get_num_threads()}
+    report["machine"] = {**machine(), "torch": torch.__version__, "torch_threads": torch.get_num_threads()}
     return report
 
 
@@ -471,7 +469,7 @@ def bench_codecs(size: int = 512, frames: int = 30, gaussians: int = 20_000, see
             "bytes_per_frame": round(mean_bytes, 1),
             "mbit_s_at_30fps": round(mean_bytes * 8 * 30 / 1e6, 3),
         }
-    report["machine"] = {"cpu": _cpu_name(), "cores": _cores(), "python": platform.python_version()}
+    report["machine"] = machine()
     return report
 
 
@@ -485,6 +483,11 @@ def _gsplat_version() -> str | None:
 
 def _cores() -> int:
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+def machine() -> dict:
+    """Where a benchmark ran: the CPU's name, the cores this process may use, the Python version."""
+    return {"cpu": _cpu_name(), "cores": _cores(), "python": platform.python_version()}
 
 
 def _cpu_name() -> str:
@@ -551,7 +554,7 @@ def bench_adapter(model: bytes | None = None, manifest=None, frames: int = 2000,
         "p95_ms_per_frame": {"batch1": per_frame["batch1_p95"], "batch8": per_frame["batch8_p95"]},
         "frames": frames,
         "threads": {"intra_op": 1},
-        "machine": {"cpu": _cpu_name(), "cores": _cores(), "python": platform.python_version()},
+        "machine": machine(),
     }
     try:
         import onnxruntime

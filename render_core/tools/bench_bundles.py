@@ -12,7 +12,6 @@ over the rounds of a block's mean milliseconds a call; ``speedup`` is the first 
 from __future__ import annotations
 
 import logging
-import platform
 import statistics
 import time
 from pathlib import Path
@@ -23,7 +22,7 @@ from ..avatar import Avatar
 from ..camera import Cameras
 from ..deform import Frame
 from ..errors import DatasetError, OptionError
-from .bench import _cores, _cpu_name
+from .bench import machine
 
 log = logging.getLogger(__name__)
 
@@ -81,8 +80,7 @@ def bench_bundles(bundles: list[str | Path | Avatar], data_dir: str | Path, *, s
         f = e["frames"]
         frame = Frame(f.expression[j:j + streams], f.joint_rotations[j:j + streams],
                       None if f.eyelids is None else f.eyelids[j:j + streams])
-        c = e["cams"]
-        cams = Cameras(c.K[j:j + streams], c.R[j:j + streams], c.t[j:j + streams], c.width, c.height)
+        cams = e["cams"].index(slice(j, j + streams))
         t0 = time.perf_counter()
         _, timings = e["renderer"].render_rgba8(frame, cams)
         ms = (time.perf_counter() - t0) * 1e3
@@ -112,4 +110,4 @@ def bench_bundles(bundles: list[str | Path | Avatar], data_dir: str | Path, *, s
             "size": size, "height": entries[0]["cams"].height, "streams": streams, "rounds": rounds,
             "block": block, "warmup": warmup, "output": "rgba8", "bundles": out,
             "threads": threads or torch.get_num_threads(),
-            "machine": {"cpu": _cpu_name(), "cores": _cores(), "python": platform.python_version()}}
+            "machine": machine()}

@@ -200,8 +200,7 @@ class ContributionPruner:
         score = contribution(model, sub, cams, rasterize, motions=moved, threads=threads, by=self.by,
                              mouth=self.mouth)
         n = model.num_gaussians
-        counts = {}
+        counts = prune_lowest(model, opt, score[:n], int(round(self.each * n)), strategy)
         if self.mouth:  # the mouth interior by the same fraction, ranked among itself
-            counts = prune_mouth_lowest(model, opt, score[n:], int(round(self.each * (len(score) - n))))
-        counts = {**prune_lowest(model, opt, score[:n], int(round(self.each * n)), strategy), **counts}
+            counts.update(prune_mouth_lowest(model, opt, score[n:], int(round(self.each * (len(score) - n)))))
         return {**counts, "frames": len(pick)}
